@@ -4,11 +4,13 @@ Public API:
     splat(...)          sampled EWA surface splatting (C++/OpenMP on CPU, CUDA on GPU)
     splat_dense(...)    exact dense oracle (pure PyTorch)
     Splatter            nn.Module holding the op's settings
-    composite(...)      compositor of a given per-pixel sample (differentiable)
+    sample(...)         per-pixel SPS sample (indices, inclusion probabilities, Λ̂)
+    composite_sample(...) compositor of a given per-pixel sample (differentiable, estimator backward)
     project(...)        differentiable EWA projection of surfels
 """
+from .functional import composite_sample, sample, splat
 from .output import SplatOutput
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
 
-__all__ = ["SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]
+__all__ = ["splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]

@@ -20,6 +20,7 @@ class SplatOutput:
             per-pixel depth, ``-1`` for empty slots (``None`` for the dense renderer).
         probs: ``[B, H, W, samples]`` inclusion probabilities ``π_k(x)`` of the sampled points,
             ``0`` for empty slots (``None`` for the dense renderer).
+        work: ``[B, H, W, 1]`` int32 number of exact kernel evaluations the sampler made per pixel.
     """
 
     image: torch.Tensor
@@ -28,6 +29,7 @@ class SplatOutput:
     total: torch.Tensor
     indices: torch.Tensor | None = None
     probs: torch.Tensor | None = None
+    work: torch.Tensor | None = None
 
     @property
     def normalized_depth(self) -> torch.Tensor:

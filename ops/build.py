@@ -1,0 +1,84 @@
+"""Just-in-time build of the native backends, cached; ``python -m nsplat.ops.build`` prebuilds.
+
+The C++ sources live in ``csrc/`` beside this file: ``core/`` (header-only, host+device algorithm),
+``cpu/`` (OpenMP) and ``cuda/`` (kernels). Builds go to ``$NSPLAT_BUILD_DIR`` (default
+``~/.cache/nsplat/<torch version>``); PyTorch's loader rebuilds when a source changes.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+log = logging.getLogger("nsplat.ops")
+CSRC = Path(__file__).resolve().parent / "csrc"
+_MODULES: dict[str, ModuleType] = {}
+
+
+def build_dir(kind: str) -> Path:
+    """Folder holding the compiled ``kind`` ("cpu" or "cuda") extension."""
+    root = Path(os.environ.get("NSPLAT_BUILD_DIR", Path.home() / ".cache" / "nsplat"))
+    tag = torch.__version__.replace("+", "_")
+    path = root / f"torch-{tag}" / kind
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def source_hash() -> str:
+    """Hash of every native source and header (PyTorch's loader only hashes the listed sources)."""
+    h = hashlib.sha256()
+    for p in sorted(CSRC.rglob("*")):
+        if p.suffix in (".h", ".cpp", ".cu"):
+            h.update(p.relative_to(CSRC).as_posix().encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _load(kind: str) -> ModuleType:
+    from torch.utils.cpp_extension import load
+
+    tag = f"-DNSPLAT_SOURCE_HASH={source_hash()}"
+
+    if kind == "cpu":
+        sources = [str(CSRC / "cpu" / "splat_cpu.cpp")]
+        flags = dict(extra_cflags=["-O3", "-fopenmp", "-std=c++17", tag], extra_ldflags=["-fopenmp"])
+    else:
+        sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]
+        flags = dict(extra_cflags=["-O3", "-std=c++17", tag],
+                     extra_cuda_cflags=["-O3", "-std=c++17", "-lineinfo", tag])
+    target = build_dir(kind)
+    already = any(target.glob("*.so"))
+    if not already:
+        log.warning("nsplat: compiling the %s extension into %s (first use only, about a minute)...", kind, target)
+    module = load(name=f"nsplat_{kind}", sources=sources, extra_include_paths=[str(CSRC)],
+                  build_directory=str(target), verbose=False, **flags)
+    return module
+
+
+def backend(device: torch.device) -> ModuleType:
+    """The compiled module for ``device`` (built on first use)."""
+    kind = "cuda" if device.type == "cuda" else "cpu"
+    if kind not in _MODULES:
+        if kind == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError("nsplat: tensors are on CUDA but CUDA is not available")
+        _MODULES[kind] = _load(kind)
+    return _MODULES[kind]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Prebuild the CPU extension, and the CUDA one when a CUDA device is present."""
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    kinds = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    for kind in kinds:
+        mod = backend(torch.device(kind))
+        log.info("built %s backend: %s", kind, mod.__file__)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,239 @@
+// Per-pixel sequential Poisson sampling (SPS) over the radix tree.
+//
+// Exact SPS draws, per pixel x, the m points with the smallest xi_k = u_k / lambda_k(x). We work with
+// keys log xi. The tree is traversed depth first, larger-bound child first. Each node has a rigorous
+// upper bound U_n(x) of its points' total size measure: min(box bound, Hermite estimate + truncation
+// bound) of the isotropic majorant (hermite.h). Once the sample holds m points, a node is pruned when
+// (P + U_n) * xi_(m) < eps, where P is the bound mass pruned so far; since xi_(m) only decreases, at the
+// end P * xi_(m) < eps, and by the union bound the probability that any unvisited point would have
+// entered the exact SPS sample is below eps. The total Lambda(x) is estimated as the visited exact mass
+// plus node estimates of the pruned mass, so |Lambda_hat - Lambda| <= P < eps / xi_(m).
+//
+// Inclusion probabilities are the piPS ones, pi_k = min(1, c lambda_k) with sum pi = m, where c is
+// solved from the sampled lambdas (the largest ones are the certainty units) and Lambda_hat.
+#pragma once
+#include "common.h"
+#include "ewa.h"
+#include "hermite.h"
+#include "lbvh.h"
+#include "rng.h"
+
+namespace nsplat {
+
+// A camera's tree; points are stored in Morton order (double copies of the projected values).
+struct TreeView {
+  int64_t n;                  // points in the tree (valid points of this camera)
+  const InternalNode* nodes;  // [n-1]
+  const NodeAgg* agg;         // [n-1]
+  const int* herm_p;          // [n-1], 0 = no expansion
+  const int64_t* herm_off;    // [n-1] offsets into herm_coef
+  const double* herm_err;     // [n-1] absolute truncation bound
+  const double* herm_coef;
+  const double* mu;           // [n,2]
+  const double* con;          // [n,3]
+  const double* logA;         // [n]
+  const int* id;              // [n] original point index
+};
+
+// Projected splats of one camera in the original point order (working precision S).
+template <typename S>
+struct SplatsView {
+  const S* mu;   // [N,2]
+  const S* con;  // [N,3]
+  const S* amp;  // [N]
+  const S* nrm;  // [N,3]
+  const S* off;  // [N]
+  const S* zc;   // [N]
+};
+
+NS_HD bool key_less(double ka, int ia, double kb, int ib) { return ka < kb || (ka == kb && ia < ib); }
+
+// Max-heap on (key, id).
+NS_HD void heap_sift_down(double* key, int* id, int n, int i) {
+  while (true) {
+    int l = 2 * i + 1, r = l + 1, big = i;
+    if (l < n && key_less(key[big], id[big], key[l], id[l])) big = l;
+    if (r < n && key_less(key[big], id[big], key[r], id[r])) big = r;
+    if (big == i) return;
+    double tk = key[i]; key[i] = key[big]; key[big] = tk;
+    int ti = id[i]; id[i] = id[big]; id[big] = ti;
+    i = big;
+  }
+}
+
+NS_HD void heap_push(double* key, int* id, int n, double k, int v) {
+  int i = n;
+  key[i] = k; id[i] = v;
+  while (i > 0) {
+    int parent = (i - 1) >> 1;
+    if (!key_less(key[parent], id[parent], key[i], id[i])) break;
+    double tk = key[i]; key[i] = key[parent]; key[parent] = tk;
+    int ti = id[i]; id[i] = id[parent]; id[parent] = ti;
+    i = parent;
+  }
+}
+
+// In-place ascending sort of (key, id) pairs.
+NS_HD void heap_sort(double* key, int* id, int n) {
+  for (int i = n / 2 - 1; i >= 0; --i) heap_sift_down(key, id, n, i);
+  for (int end = n - 1; end > 0; --end) {
+    double tk = key[0]; key[0] = key[end]; key[end] = tk;
+    int ti = id[0]; id[0] = id[end]; id[end] = ti;
+    heap_sift_down(key, id, end, 0);
+  }
+}
+
+// Upper bound (log) and estimate (linear) of internal node `node`'s total size measure at (u, v).
+NS_HD void node_bound(const TreeView& T, int node, double u, double v, double* log_ub, double* est) {
+  const NodeAgg& a = T.agg[node];
+  double dx = dmax(dmax(a.box[0] - u, u - a.box[2]), 0.0);
+  double dy = dmax(dmax(a.box[1] - v, v - a.box[3]), 0.0);
+  double h2 = dmax(a.h2, 1e-300);
+  double lub = log(a.sum_amp) - (dx * dx + dy * dy) / (2.0 * h2);
+  int p = T.herm_p[node];
+  if (p > 0) {
+    double cx = 0.5 * (a.box[0] + a.box[2]), cy = 0.5 * (a.box[1] + a.box[3]);
+    double h = hermite_eval(T.herm_coef + T.herm_off[node], p, cx, cy, 1.0 / sqrt(2.0 * h2), u, v);
+    double ub = h + T.herm_err[node];
+    double lh = ub > 0.0 ? log(ub) : -INFINITY;
+    lub = dmin(lub, lh);
+    *log_ub = lub;
+    *est = dmin(dmax(h, 0.0), exp(lub));
+    return;
+  }
+  *log_ub = lub;
+  *est = 0.5 * exp(lub);
+}
+
+struct PixelStats {
+  double total;   // Lambda_hat(x)
+  int evaluated;  // exact kernel evaluations
+};
+
+// Offers sorted point s to the heap.
+NS_HD void offer_point(const TreeView& T, int s, double u, double v, uint64_t stream, int m, double* key, int* id,
+                       int* cnt, double* visited) {
+  double lam_log = log_size(T.mu + 2 * s, T.con + 3 * s, T.logA[s], u, v);
+  int pid = T.id[s];
+  double k = log_uniform(stream, pid) - lam_log;
+  *visited += exp(lam_log);
+  if (*cnt < m) {
+    heap_push(key, id, *cnt, k, pid);
+    ++*cnt;
+  } else if (key_less(k, pid, key[0], id[0])) {
+    key[0] = k;
+    id[0] = pid;
+    heap_sift_down(key, id, m, 0);
+  }
+}
+
+// Draws the SPS sample of pixel (u, v). On return idx[0..cnt) holds original point ids and key[] is
+// scratch; `*cnt` is the sample size. Returns the total estimate and work counter.
+NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t stream, int m, double log_eps,
+                                double* key, int* idx, int* cnt) {
+  PixelStats st{0.0, 0};
+  *cnt = 0;
+  if (T.n == 0) return st;
+  double visited = 0.0;
+  if (T.n == 1) {
+    offer_point(T, 0, u, v, stream, m, key, idx, cnt, &visited);
+    st.total = visited;
+    st.evaluated = 1;
+    return st;
+  }
+  int node_st[kStackSize];
+  double lub_st[kStackSize], est_st[kStackSize];
+  double root_lub, root_est;
+  node_bound(T, 0, u, v, &root_lub, &root_est);
+  if (root_lub < log(kMinTotal)) return st;  // certainly below the floor
+  int sp = 0;
+  node_st[sp] = 0; lub_st[sp] = root_lub; est_st[sp] = root_est; ++sp;
+  double log_pruned = -INFINITY, pruned_est = 0.0;
+  while (sp > 0) {
+    --sp;
+    int node = node_st[sp];
+    double lub = lub_st[sp];
+    if (*cnt == m) {
+      double lp = log_add_exp(log_pruned, lub);
+      if (lp + key[0] < log_eps) {
+        log_pruned = lp;
+        pruned_est += est_st[sp];
+        continue;
+      }
+    }
+    const InternalNode& nd = T.nodes[node];
+    if (nd.last - nd.first + 1 <= kLeafSize) {
+      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, stream, m, key, idx, cnt, &visited);
+      st.evaluated += nd.last - nd.first + 1;
+      continue;
+    }
+    int child[2] = {nd.left, nd.right};
+    double cl[2], ce[2];
+    int internal = 0;
+    for (int c = 0; c < 2; ++c) {
+      if (child[c] < 0) {
+        offer_point(T, ~child[c], u, v, stream, m, key, idx, cnt, &visited);
+        st.evaluated += 1;
+        cl[c] = -INFINITY;
+      } else {
+        node_bound(T, child[c], u, v, &cl[c], &ce[c]);
+        ++internal;
+      }
+    }
+    // push the smaller bound first so that the larger is visited next
+    int order0 = cl[0] <= cl[1] ? 0 : 1;
+    for (int o = 0; o < 2; ++o) {
+      int c = o == 0 ? order0 : 1 - order0;
+      if (child[c] < 0) continue;
+      node_st[sp] = child[c]; lub_st[sp] = cl[c]; est_st[sp] = ce[c]; ++sp;
+    }
+  }
+  st.total = visited + pruned_est;
+  return st;
+}
+
+// Turns the heap into the output sample: piPS probabilities from Lambda_hat, then slots ordered front to
+// back by per-pixel depth (ties by id). Empty slots get index -1 and probability 0.
+template <typename S>
+NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray& ray, int m, int cnt, double total,
+                          double* key, int* idx, S* prob) {
+  if (total < kMinTotal) cnt = 0;
+  double c = INFINITY;
+  if (cnt == m) {
+    for (int i = 0; i < cnt; ++i) {
+      int k = idx[i];
+      key[i] = -exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
+    }
+    heap_sort(key, idx, cnt);  // lambda descending
+    double rest = total;
+    for (int j = 0; j < cnt; ++j) {
+      double lam = -key[j];
+      double cj = (m - j) / rest;
+      if (cj * lam < 1.0) { c = cj; break; }
+      rest -= lam;
+      if (rest <= 0.0) break;
+    }
+  }
+  for (int i = 0; i < cnt; ++i) {
+    int k = idx[i];
+    bool on_plane;
+    S dot;
+    key[i] = static_cast<double>(splat_depth(P.nrm + 3 * k, P.off[k], P.zc[k], ray, &on_plane, &dot));
+  }
+  heap_sort(key, idx, cnt);
+  for (int i = 0; i < cnt; ++i) {
+    int k = idx[i];
+    if (c == INFINITY) {
+      prob[i] = S(1);
+    } else {
+      double lam = exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
+      prob[i] = static_cast<S>(dmin(1.0, c * lam));
+    }
+  }
+  for (int i = cnt; i < m; ++i) {
+    idx[i] = -1;
+    prob[i] = S(0);
+  }
+}
+
+}  // namespace nsplat

@@ -1,0 +1,367 @@
+// CPU backend: OpenMP loops over cameras' points, tree nodes and pixels calling the shared core.
+#include <torch/extension.h>
+
+#include <algorithm>
+#include <vector>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+#include "../core/composite.h"
+#include "../core/sps.h"
+#include "../core/tree_build.h"
+
+namespace nsplat {
+namespace {
+
+int num_threads() { return std::max(1, at::get_num_threads()); }
+
+// A camera's tree with its storage.
+struct CpuTree {
+  std::vector<InternalNode> nodes;
+  std::vector<NodeAgg> agg;
+  std::vector<int> herm_p, parent_int, parent_leaf, flags, id;
+  std::vector<int64_t> herm_off;
+  std::vector<double> herm_err, herm_coef, mu, con, logA, amp, sig2;
+  int64_t n = 0;
+
+  TreeView view() const {
+    TreeView t;
+    t.n = n;
+    t.nodes = nodes.data();
+    t.agg = agg.data();
+    t.herm_p = herm_p.data();
+    t.herm_off = herm_off.data();
+    t.herm_err = herm_err.data();
+    t.herm_coef = herm_coef.data();
+    t.mu = mu.data();
+    t.con = con.data();
+    t.logA = logA.data();
+    t.id = id.data();
+    return t;
+  }
+};
+
+template <typename S>
+void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* sig2, int64_t N, int order, double tol) {
+  std::vector<int64_t> valid;
+  valid.reserve(N);
+  double lox = INFINITY, loy = INFINITY, hix = -INFINITY, hiy = -INFINITY;
+  for (int64_t k = 0; k < N; ++k) {
+    if (!(amp[k] > S(0))) continue;
+    valid.push_back(k);
+    lox = std::min(lox, double(mu[2 * k]));
+    hix = std::max(hix, double(mu[2 * k]));
+    loy = std::min(loy, double(mu[2 * k + 1]));
+    hiy = std::max(hiy, double(mu[2 * k + 1]));
+  }
+  const int64_t n = static_cast<int64_t>(valid.size());
+  T.n = n;
+  if (n == 0) return;
+  double ext = std::max(hix - lox, hiy - loy);
+  double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
+  std::vector<uint64_t> keys(n);
+  const int nt = num_threads();
+#pragma omp parallel for num_threads(nt) schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    int64_t k = valid[i];
+    keys[i] = morton_key(double(mu[2 * k]), double(mu[2 * k + 1]), lox, loy, inv_ext, k);
+  }
+  std::sort(keys.begin(), keys.end());
+  T.id.resize(n);
+  T.mu.resize(2 * n);
+  T.con.resize(3 * n);
+  T.logA.resize(n);
+  T.amp.resize(n);
+  T.sig2.resize(n);
+#pragma omp parallel for num_threads(nt) schedule(static)
+  for (int64_t s = 0; s < n; ++s) {
+    int64_t k = static_cast<int64_t>(keys[s] & 0xFFFFFFFFull);
+    T.id[s] = static_cast<int>(k);
+    T.mu[2 * s] = double(mu[2 * k]);
+    T.mu[2 * s + 1] = double(mu[2 * k + 1]);
+    for (int c = 0; c < 3; ++c) T.con[3 * s + c] = double(con[3 * k + c]);
+    T.amp[s] = double(amp[k]);
+    T.logA[s] = std::log(T.amp[s]);
+    T.sig2[s] = double(sig2[k]);
+  }
+  if (n == 1) return;
+  const int64_t ni = n - 1;
+  T.nodes.resize(ni);
+  T.agg.resize(ni);
+  T.parent_int.assign(ni, -1);
+  T.parent_leaf.assign(n, -1);
+  T.flags.assign(ni, 0);
+  T.herm_p.assign(ni, 0);
+  T.herm_err.assign(ni, 0.0);
+  T.herm_off.assign(ni, 0);
+#pragma omp parallel for num_threads(nt) schedule(static)
+  for (int64_t i = 0; i < ni; ++i) build_internal_node(keys.data(), n, i, T.nodes.data(), T.parent_int.data(), T.parent_leaf.data());
+#pragma omp parallel for num_threads(nt) schedule(static)
+  for (int64_t s = 0; s < n; ++s)
+    propagate_up(s, T.nodes.data(), T.parent_int.data(), T.parent_leaf.data(), T.mu.data(), T.amp.data(), T.sig2.data(),
+                 T.agg.data(), T.flags.data());
+#pragma omp parallel for num_threads(nt) schedule(static)
+  for (int64_t i = 0; i < ni; ++i) choose_expansion(i, T.nodes.data(), T.agg.data(), tol, order, &T.herm_p[i], &T.herm_err[i]);
+  int64_t total = 0;
+  for (int64_t i = 0; i < ni; ++i) {
+    T.herm_off[i] = total;
+    total += static_cast<int64_t>(T.herm_p[i]) * T.herm_p[i];
+  }
+  T.herm_coef.assign(std::max<int64_t>(total, 1), 0.0);
+#pragma omp parallel for num_threads(nt) schedule(dynamic, 64)
+  for (int64_t i = 0; i < ni; ++i)
+    expansion_coefficients(i, T.nodes.data(), T.agg.data(), T.herm_p.data(), T.herm_off.data(), T.mu.data(), T.amp.data(),
+                           T.herm_coef.data());
+}
+
+template <typename S>
+SplatsView<S> splats_of(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
+                        const at::Tensor& off, const at::Tensor& zc, int64_t b) {
+  const int64_t N = amp.size(1);
+  SplatsView<S> v;
+  v.mu = mu.data_ptr<S>() + b * N * 2;
+  v.con = con.data_ptr<S>() + b * N * 3;
+  v.amp = amp.data_ptr<S>() + b * N;
+  v.nrm = nrm.data_ptr<S>() + b * N * 3;
+  v.off = off.data_ptr<S>() + b * N;
+  v.zc = zc.data_ptr<S>() + b * N;
+  return v;
+}
+
+void check_cpu(const std::vector<at::Tensor>& ts) {
+  for (const auto& t : ts) {
+    TORCH_CHECK(t.device().is_cpu(), "nsplat CPU backend got a tensor on ", t.device());
+    TORCH_CHECK(t.is_contiguous(), "nsplat CPU backend expects contiguous tensors");
+  }
+}
+
+}  // namespace
+
+template <typename S>
+void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& sig2,
+                 const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, int64_t width,
+                 int64_t height, int64_t m, double log_eps, int64_t seed, int order, double tol, at::Tensor& indices,
+                 at::Tensor& probs, at::Tensor& total, at::Tensor& work) {
+  const int64_t B = amp.size(0), N = amp.size(1), P = width * height;
+  const int nt = num_threads();
+  for (int64_t b = 0; b < B; ++b) {
+    CpuTree tree;
+    build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
+                  sig2.data_ptr<S>() + b * N, N, order, tol);
+    const TreeView tv = tree.view();
+    const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
+    const double* K = Kd.data_ptr<double>() + b * 9;
+    int* idx_b = indices.data_ptr<int>() + b * P * m;
+    S* prob_b = probs.data_ptr<S>() + b * P * m;
+    S* total_b = total.data_ptr<S>() + b * P;
+    int* work_b = work.data_ptr<int>() + b * P;
+#pragma omp parallel num_threads(nt)
+    {
+      std::vector<double> key(m);
+#pragma omp for schedule(dynamic, 16)
+      for (int64_t p = 0; p < P; ++p) {
+        double u = double(p % width) + 0.5, v = double(p / width) + 0.5;
+        uint64_t stream = pixel_stream(static_cast<uint64_t>(seed), b, p);
+        int cnt = 0;
+        int* idx = idx_b + p * m;
+        PixelStats st = traverse_pixel(tv, u, v, stream, static_cast<int>(m), log_eps, key.data(), idx, &cnt);
+        Ray ray = pixel_ray(K, u, v);
+        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, key.data(), idx, prob_b + p * m);
+        total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
+        work_b[p] = st.evaluated;
+      }
+    }
+  }
+}
+
+std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
+                               at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
+                               int64_t samples, double eps, int64_t seed, int64_t order, double tol) {
+  check_cpu({mu, con, amp, sig2, nrm, off, zc, Ks});
+  const int64_t B = amp.size(0);
+  auto opts = mu.options();
+  at::Tensor indices = at::empty({B, height, width, samples}, opts.dtype(at::kInt));
+  at::Tensor probs = at::empty({B, height, width, samples}, opts);
+  at::Tensor total = at::empty({B, height, width, 1}, opts);
+  at::Tensor work = at::empty({B, height, width, 1}, opts.dtype(at::kInt));
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample", [&] {
+    sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, width, height, samples, std::log(eps), seed,
+                          static_cast<int>(order), tol, indices, probs, total, work);
+  });
+  return {indices, probs, total, work};
+}
+
+template <typename S>
+void composite_forward_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
+                            const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, const at::Tensor& feat,
+                            const at::Tensor& bg, const at::Tensor& indices, const at::Tensor& probs, int mode,
+                            at::Tensor& image, at::Tensor& alpha, at::Tensor& depth) {
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
+  const int64_t C = feat.size(1), P = H * W;
+  const int nt = num_threads();
+  for (int64_t b = 0; b < B; ++b) {
+    const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
+    const double* K = Kd.data_ptr<double>() + b * 9;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t p = 0; p < P; ++p) {
+      int64_t o = b * P + p;
+      double u = double(p % W) + 0.5, v = double(p / W) + 0.5;
+      Ray ray = pixel_ray(K, u, v);
+      composite_pixel(sv, feat.data_ptr<S>(), static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
+                      probs.data_ptr<S>() + o * m, static_cast<int>(m), S(u), S(v), ray, mode,
+                      image.data_ptr<S>() + o * C, alpha.data_ptr<S>() + o, depth.data_ptr<S>() + o);
+    }
+  }
+}
+
+std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm, at::Tensor off,
+                                          at::Tensor zc, at::Tensor Ks, at::Tensor feat, at::Tensor bg,
+                                          at::Tensor indices, at::Tensor probs, int64_t mode) {
+  check_cpu({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs});
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), C = feat.size(1);
+  auto opts = mu.options();
+  at::Tensor image = at::empty({B, H, W, C}, opts);
+  at::Tensor alpha = at::empty({B, H, W, 1}, opts);
+  at::Tensor depth = at::empty({B, H, W, 1}, opts);
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_forward", [&] {
+    composite_forward_impl<scalar_t>(mu, con, amp, nrm, off, zc, Kd, feat, bg, indices, probs, static_cast<int>(mode),
+                                     image, alpha, depth);
+  });
+  return {image, alpha, depth};
+}
+
+template <typename S>
+void backward_pixels_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
+                          const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, const at::Tensor& feat,
+                          const at::Tensor& bg, const at::Tensor& indices, const at::Tensor& probs, int mode,
+                          int estimator, const at::Tensor& g_img, const at::Tensor& g_alpha, const at::Tensor& g_depth,
+                          at::Tensor& dalpha, at::Tensor& wf, at::Tensor& bgw) {
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
+  const int64_t C = feat.size(1), P = H * W;
+  const int nt = num_threads();
+  for (int64_t b = 0; b < B; ++b) {
+    const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
+    const double* K = Kd.data_ptr<double>() + b * 9;
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t p = 0; p < P; ++p) {
+      int64_t o = b * P + p;
+      double u = double(p % W) + 0.5, v = double(p / W) + 0.5;
+      Ray ray = pixel_ray(K, u, v);
+      bgw.data_ptr<S>()[o] = composite_backward_pixel(
+          sv, feat.data_ptr<S>(), static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
+          probs.data_ptr<S>() + o * m, static_cast<int>(m), S(u), S(v), ray, mode, estimator,
+          g_img.data_ptr<S>() + o * C, g_alpha.data_ptr<S>()[o], g_depth.data_ptr<S>()[o], dalpha.data_ptr<S>() + o * m,
+          wf.data_ptr<S>() + o * m);
+    }
+  }
+}
+
+std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
+                                                  at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor feat,
+                                                  at::Tensor bg, at::Tensor indices, at::Tensor probs, int64_t mode,
+                                                  int64_t estimator, at::Tensor g_img, at::Tensor g_alpha,
+                                                  at::Tensor g_depth) {
+  check_cpu({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, g_img, g_alpha, g_depth});
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
+  auto opts = mu.options();
+  at::Tensor dalpha = at::zeros({B, H, W, m}, opts);
+  at::Tensor wf = at::zeros({B, H, W, m}, opts);
+  at::Tensor bgw = at::empty({B, H, W, 1}, opts);
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_pixels", [&] {
+    backward_pixels_impl<scalar_t>(mu, con, amp, nrm, off, zc, Kd, feat, bg, indices, probs, static_cast<int>(mode),
+                                   static_cast<int>(estimator), g_img, g_alpha, g_depth, dalpha, wf, bgw);
+  });
+  return {dalpha, wf, bgw};
+}
+
+// Pass 2: per point, over its entries (flat slot ids sorted by (point, camera), segments seg[k]..seg[k+1]).
+template <typename S>
+void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
+                          const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, const at::Tensor& entries,
+                          const at::Tensor& seg, const at::Tensor& dalpha, const at::Tensor& wf,
+                          const at::Tensor& g_img, const at::Tensor& g_depth, int64_t width, int64_t height,
+                          bool paper, std::vector<at::Tensor>& out) {
+  const int64_t N = amp.size(1), m = dalpha.size(3), C = g_img.size(3), P = width * height;
+  const int64_t* ent = entries.data_ptr<int64_t>();
+  const int64_t* sg = seg.data_ptr<int64_t>();
+  const S* da = dalpha.data_ptr<S>();
+  const S* w = wf.data_ptr<S>();
+  const S* gi = g_img.data_ptr<S>();
+  const S* gd = g_depth.data_ptr<S>();
+  S* o_mu = out[0].data_ptr<S>();
+  S* o_con = out[1].data_ptr<S>();
+  S* o_amp = out[2].data_ptr<S>();
+  S* o_nrm = out[3].data_ptr<S>();
+  S* o_off = out[4].data_ptr<S>();
+  S* o_zc = out[5].data_ptr<S>();
+  S* o_feat = out[6].data_ptr<S>();
+  const int nt = num_threads();
+#pragma omp parallel num_threads(nt)
+  {
+    std::vector<S> gf(C);
+#pragma omp for schedule(dynamic, 64)
+    for (int64_t k = 0; k < N; ++k) {
+      int64_t e = sg[k];
+      const int64_t end = sg[k + 1];
+      while (e < end) {
+        const int64_t b = ent[e] / (P * m);
+        const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
+        const double* K = Kd.data_ptr<double>() + b * 9;
+        S a_mu[2] = {0, 0}, a_con[3] = {0, 0, 0}, a_amp = 0, a_nrm[3] = {0, 0, 0}, a_off = 0, a_zc = 0;
+        std::fill(gf.begin(), gf.end(), S(0));
+        int64_t count = 0;
+        for (; e < end && ent[e] / (P * m) == b; ++e, ++count) {
+          const int64_t flat = ent[e];
+          const int64_t pix = (flat / m) % P;
+          const int64_t o = b * P + pix;
+          const double u = double(pix % width) + 0.5, v = double(pix / width) + 0.5;
+          const Ray ray = pixel_ray(K, u, v);
+          for (int64_t c = 0; c < C; ++c) gf[c] += w[flat] * gi[o * C + c];
+          splat_grad_entry(sv, static_cast<int>(k), S(u), S(v), ray, da[flat], w[flat] * gd[o], a_mu, a_con, &a_amp,
+                           a_nrm, &a_off, &a_zc);
+        }
+        const S scale = paper ? S(1) / S(count) : S(1);
+        const int64_t bk = b * N + k;
+        for (int c = 0; c < 2; ++c) o_mu[bk * 2 + c] = a_mu[c] * scale;
+        for (int c = 0; c < 3; ++c) o_con[bk * 3 + c] = a_con[c] * scale;
+        for (int c = 0; c < 3; ++c) o_nrm[bk * 3 + c] = a_nrm[c] * scale;
+        o_amp[bk] = a_amp * scale;
+        o_off[bk] = a_off * scale;
+        o_zc[bk] = a_zc * scale;
+        for (int64_t c = 0; c < C; ++c) o_feat[k * C + c] += gf[c] * scale;
+      }
+    }
+  }
+}
+
+std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
+                                                  at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor entries,
+                                                  at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
+                                                  at::Tensor g_depth, int64_t width, int64_t height, int64_t estimator) {
+  check_cpu({mu, con, amp, nrm, off, zc, Ks, entries, seg, dalpha, wf, g_img, g_depth});
+  const int64_t B = amp.size(0), N = amp.size(1), C = g_img.size(3);
+  auto opts = mu.options();
+  std::vector<at::Tensor> out = {at::zeros({B, N, 2}, opts), at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),
+                                 at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),    at::zeros({B, N}, opts),
+                                 at::zeros({N, C}, opts)};
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_points", [&] {
+    backward_points_impl<scalar_t>(mu, con, amp, nrm, off, zc, Kd, entries, seg, dalpha, wf, g_img, g_depth, width,
+                                   height, estimator == kPaper, out);
+  });
+  return out;
+}
+
+}  // namespace nsplat
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("sample", &nsplat::sample, "Per-pixel SPS sample over the radix tree (CPU)");
+  m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
+  m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
+  m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
+}
