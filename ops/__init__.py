@@ -9,8 +9,9 @@ Public API:
     project(...)        differentiable EWA projection of surfels
 """
 from .functional import composite_sample, sample, splat
+from .module import Splatter
 from .output import SplatOutput
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
 
-__all__ = ["splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]
+__all__ = ["Splatter", "splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]

@@ -158,3 +158,57 @@ def pips_probabilities(lam: torch.Tensor, samples: int) -> torch.Tensor:
             rest -= float(v[j])
         out[p] = torch.clamp(c * lam[p], max=1.0) if math.isfinite(c) else (lam[p] > 0).double()
     return out
+
+
+def sps_inclusion_probabilities(lam: np.ndarray, samples: int) -> np.ndarray:
+    """Exact inclusion probabilities ``[N]`` of sequential Poisson sampling for size measures ``lam [N]``.
+
+    ``P(k ∈ S) = ∫_0^{1/λ_k} λ_k · P(#{j≠k : ξ_j < t} < m) dt`` where ``P(ξ_j < t) = min(1, λ_j t)``.
+    Between consecutive breakpoints ``1/λ_j`` the integrand is a polynomial of degree < N in ``t``,
+    so Gauss–Legendre quadrature with ``⌈N/2⌉ + 1`` nodes per piece is exact up to rounding; the
+    Poisson-binomial count is a dynamic programme truncated at ``m``.
+    """
+    lam = np.asarray(lam, dtype=np.float64)
+    out = np.zeros_like(lam)
+    idx = np.nonzero(lam > 0)[0]
+    if len(idx) <= samples:
+        out[idx] = 1.0
+        return out
+    lv = lam[idx]
+    n = len(lv)
+    xg, wg = np.polynomial.legendre.leggauss(n // 2 + 2)
+    breaks = np.sort(1.0 / lv)
+    for i in range(n):
+        others = np.delete(lv, i)
+        end = 1.0 / lv[i]
+        edges = np.concatenate([[0.0], breaks[breaks < end], [end]])
+        a, b = edges[:-1], edges[1:]
+        keep = b > a
+        a, b = a[keep], b[keep]
+        t = (0.5 * (b - a)[:, None] * xg[None, :] + 0.5 * (a + b)[:, None]).reshape(-1)
+        wt = (0.5 * (b - a)[:, None] * wg[None, :]).reshape(-1)
+        p = np.minimum(1.0, t[:, None] * others[None, :])
+        dp = np.zeros((len(t), samples))
+        dp[:, 0] = 1.0
+        for j in range(n - 1):
+            pj = p[:, j:j + 1]
+            shifted = np.concatenate([np.zeros((len(t), 1)), dp[:, :-1]], axis=1)
+            dp = dp * (1.0 - pj) + shifted * pj
+        out[idx[i]] = lv[i] * float((wt * dp.sum(axis=1)).sum())
+    return out
+
+
+def sps_expectation_weights(lam: torch.Tensor, samples: int) -> torch.Tensor:
+    """``[P, N]`` ratios ``P_k(x) / π_k(x)`` of exact SPS inclusion to πps probabilities (0 where λ = 0).
+
+    The expectation over SPS samples of any Horvitz–Thompson sum ``Σ_{k∈S} t_k / π_k`` is
+    ``Σ_k (P_k / π_k) t_k``; with these weights the tests compute it exactly (the implied bias of using
+    πps probabilities with SPS, Ohlsson 1998).
+    """
+    pips = pips_probabilities(lam, samples).numpy()
+    out = np.zeros_like(pips)
+    for p in range(lam.shape[0]):
+        exact = sps_inclusion_probabilities(lam[p].numpy(), samples)
+        nz = pips[p] > 0
+        out[p, nz] = exact[nz] / pips[p, nz]
+    return torch.from_numpy(out)

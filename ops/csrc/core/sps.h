@@ -106,8 +106,9 @@ NS_HD void node_bound(const TreeView& T, int node, double u, double v, double* l
 }
 
 struct PixelStats {
-  double total;   // Lambda_hat(x)
-  int evaluated;  // exact kernel evaluations
+  double total;     // Lambda_hat(x)
+  int evaluated;    // exact kernel evaluations (= points visited)
+  bool exhaustive;  // every point of the tree was visited (nothing pruned)
 };
 
 // Offers sorted point s to the heap.
@@ -131,7 +132,7 @@ NS_HD void offer_point(const TreeView& T, int s, double u, double v, uint64_t st
 // scratch; `*cnt` is the sample size. Returns the total estimate and work counter.
 NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t stream, int m, double log_eps,
                                 double* key, int* idx, int* cnt) {
-  PixelStats st{0.0, 0};
+  PixelStats st{0.0, 0, true};
   *cnt = 0;
   if (T.n == 0) return st;
   double visited = 0.0;
@@ -145,7 +146,10 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
   double lub_st[kStackSize], est_st[kStackSize];
   double root_lub, root_est;
   node_bound(T, 0, u, v, &root_lub, &root_est);
-  if (root_lub < log(kMinTotal)) return st;  // certainly below the floor
+  if (root_lub < log(kMinTotal)) {  // certainly below the floor
+    st.exhaustive = false;
+    return st;
+  }
   int sp = 0;
   node_st[sp] = 0; lub_st[sp] = root_lub; est_st[sp] = root_est; ++sp;
   double log_pruned = -INFINITY, pruned_est = 0.0;
@@ -189,17 +193,19 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     }
   }
   st.total = visited + pruned_est;
+  st.exhaustive = log_pruned == -INFINITY;
   return st;
 }
 
 // Turns the heap into the output sample: piPS probabilities from Lambda_hat, then slots ordered front to
-// back by per-pixel depth (ties by id). Empty slots get index -1 and probability 0.
+// back by per-pixel depth (ties by id). Empty slots get index -1 and probability 0. When the sample holds
+// every point with lambda > 0 (`all_in`), all probabilities are 1.
 template <typename S>
 NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray& ray, int m, int cnt, double total,
-                          double* key, int* idx, S* prob) {
+                          bool all_in, double* key, int* idx, S* prob) {
   if (total < kMinTotal) cnt = 0;
   double c = INFINITY;
-  if (cnt == m) {
+  if (cnt == m && !all_in) {
     for (int i = 0; i < cnt; ++i) {
       int k = idx[i];
       key[i] = -exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
@@ -211,7 +217,7 @@ NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray&
       double cj = (m - j) / rest;
       if (cj * lam < 1.0) { c = cj; break; }
       rest -= lam;
-      if (rest <= 0.0) break;
+      if (rest <= 1e-12 * total) break;  // the remaining mass is rounding noise: all certainty units
     }
   }
   for (int i = 0; i < cnt; ++i) {

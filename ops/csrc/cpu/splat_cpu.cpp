@@ -168,7 +168,8 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
         int* idx = idx_b + p * m;
         PixelStats st = traverse_pixel(tv, u, v, stream, static_cast<int>(m), log_eps, key.data(), idx, &cnt);
         Ray ray = pixel_ray(K, u, v);
-        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, key.data(), idx, prob_b + p * m);
+        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.exhaustive && st.evaluated == cnt, key.data(),
+                       idx, prob_b + p * m);
         total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
         work_b[p] = st.evaluated;
       }
