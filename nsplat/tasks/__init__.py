@@ -10,7 +10,9 @@ import importlib
 from types import ModuleType
 
 TASKS: dict[str, str] = {
+    "refine": "nsplat.tasks.refine",
     "demo": "nsplat.tasks.demo",
+    "reconstruct": "nsplat.tasks.reconstruct",
 }
 
 
