@@ -7,6 +7,7 @@ The C++ sources live in ``csrc/`` beside this file: ``core/`` (header-only, host
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import logging
 import os
 import sys
@@ -45,18 +46,26 @@ def _load(kind: str) -> ModuleType:
     tag = f"-DNSPLAT_SOURCE_HASH={source_hash()}"
 
     if kind == "cpu":
-        sources = [str(CSRC / "cpu" / "splat_cpu.cpp")]
+        sources = [str(CSRC / "cpu" / "splat_cpu.cpp"), str(CSRC / "cpu" / "scatter_cpu.cpp")]
         flags = dict(extra_cflags=["-O3", "-fopenmp", "-std=c++17", tag], extra_ldflags=["-fopenmp"])
     else:
         sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]
         flags = dict(extra_cflags=["-O3", "-std=c++17", tag],
                      extra_cuda_cflags=["-O3", "-std=c++17", "-lineinfo", tag])
     target = build_dir(kind)
-    already = any(target.glob("*.so"))
-    if not already:
-        log.warning("nsplat: compiling the %s extension into %s (first use only, about a minute)...", kind, target)
+    digest = source_hash()
+    stamp = target / "source_hash"
+    built = target / f"nsplat_{kind}.so"
+    if built.is_file() and stamp.is_file() and stamp.read_text() == digest:
+        spec = importlib.util.spec_from_file_location(f"nsplat_{kind}", built)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    log.warning("nsplat: compiling the %s extension into %s (first use only, about a minute)...", kind, target)
     module = load(name=f"nsplat_{kind}", sources=sources, extra_include_paths=[str(CSRC)],
                   build_directory=str(target), verbose=False, **flags)
+    if Path(module.__file__).resolve() == built.resolve():
+        stamp.write_text(digest)
     return module
 
 

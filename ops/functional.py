@@ -12,7 +12,7 @@ import torch
 from .build import backend
 from .output import SplatOutput
 from .projection import Projected, project
-from .validation import COMPOSITES, ESTIMATORS, check_geometry, check_sampling, check_settings
+from .validation import COMPOSITES, ESTIMATORS, check_deterministic, check_geometry, check_sampling, check_settings
 
 
 def _native_inputs(proj: Projected) -> list[torch.Tensor]:
@@ -44,17 +44,19 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
 
 
 class _Composite(torch.autograd.Function):
-    """Compositing of a fixed sample; backward = pass 1 per pixel, pass 2 per point (deterministic)."""
+    """Compositing of a fixed sample. Backward (deterministic): pass 1 per pixel, pass 2 per point in
+    a fixed (point, camera, slot) order. Non-deterministic (CPU only): one pass per pixel scattering
+    into the per-point buffers with atomics (``csrc/cpu/scatter_cpu.cpp``)."""
 
     @staticmethod
-    def forward(ctx, mode: int, estimator: int, Ks: torch.Tensor, indices: torch.Tensor, probs: torch.Tensor,
-                mu, con, amp, nrm, off, zc, feat, bg):  # noqa: ANN001 - autograd signature
+    def forward(ctx, mode: int, estimator: int, deterministic: bool, Ks: torch.Tensor, indices: torch.Tensor,
+                probs: torch.Tensor, mu, con, amp, nrm, off, zc, feat, bg):  # noqa: ANN001 - autograd signature
         ops = backend(mu.device)
         args = [t.contiguous() for t in (mu, con, amp, nrm, off, zc)]
         Kc = Ks.detach().contiguous()
         image, alpha, depth = ops.composite_forward(*args, Kc, feat.contiguous(), bg.contiguous(), indices, probs, mode)
         ctx.save_for_backward(*args, Kc, feat, bg, indices, probs)
-        ctx.mode, ctx.estimator = mode, estimator
+        ctx.mode, ctx.estimator, ctx.deterministic = mode, estimator, deterministic
         return image, alpha, depth
 
     @staticmethod
@@ -68,13 +70,17 @@ class _Composite(torch.autograd.Function):
         g_depth = torch.zeros(B, H, W, 1, dtype=mu.dtype, device=mu.device) if g_depth is None else g_depth
         g_img, g_alpha, g_depth = g_img.contiguous(), g_alpha.contiguous(), g_depth.contiguous()
         params = (mu, con, amp, nrm, off, zc)
+        if not ctx.deterministic and mu.device.type == "cpu":
+            *grads, bgw = ops.composite_backward_scatter(*params, Ks, feat.contiguous(), bg.contiguous(), indices,
+                                                         probs, ctx.mode, ctx.estimator, g_img, g_alpha, g_depth)
+            return (None, None, None, None, None, None, *grads, (bgw * g_img).sum(dim=(0, 1, 2)))
         dalpha, wf, bgw = ops.composite_backward_pixels(*params, Ks, feat.contiguous(), bg.contiguous(), indices,
                                                         probs, ctx.mode, ctx.estimator, g_img, g_alpha, g_depth)
         entries, seg = _entries_by_point(indices, N)
         grads = ops.composite_backward_points(*params, Ks, entries, seg, dalpha, wf, g_img, g_depth, W, H,
                                               ctx.estimator)
         g_bg = (bgw * g_img).sum(dim=(0, 1, 2))
-        return (None, None, None, None, None, *grads, g_bg)
+        return (None, None, None, None, None, None, *grads, g_bg)
 
 
 def _entries_by_point(indices: torch.Tensor, N: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,7 +100,7 @@ def _entries_by_point(indices: torch.Tensor, N: int) -> tuple[torch.Tensor, torc
 
 def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, indices: torch.Tensor,
               probs: torch.Tensor, *, background: torch.Tensor | None = None, composite: str = "alpha",
-              estimator: str = "ht") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              estimator: str = "ht", deterministic: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite a given per-pixel sample; differentiable w.r.t. ``proj``, ``features`` and ``background``.
 
     Slots are blended in the given order (front to back; :func:`sample` orders them by per-pixel
@@ -107,6 +113,10 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
         proj: projected surfels ``[B,N,...]``. features: ``[N,C]``. Ks: ``[B,3,3]``.
         indices: ``[B,H,W,m]`` int32. probs: ``[B,H,W,m]`` inclusion probabilities (dtype of proj).
         background: ``[C]`` (zeros if None). composite: "alpha" | "additive". estimator: "ht" | "paper" | "sampled".
+        deterministic: True (default): fixed-order backward, gradients bitwise identical across runs and
+            thread counts. False: single-pass atomic-scatter backward on CPU (faster, equal up to
+            rounding, summation order varies); on CUDA only the deterministic backward exists and
+            ``False`` falls back to it.
 
     Returns:
         ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``.
@@ -115,13 +125,15 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+    check_deterministic(deterministic)
     if indices.dtype != torch.int32 or indices.dim() != 4:
         raise TypeError(f"indices: expected an int32 tensor [B,H,W,m], got {indices.dtype} {list(indices.shape)}")
     if probs.shape != indices.shape or probs.dtype != proj.means2d.dtype:
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {proj.means2d.dtype}, "
                          f"got {list(probs.shape)} {probs.dtype}")
     bg = background if background is not None else features.new_zeros(features.shape[1])
-    return _Composite.apply(COMPOSITES.index(composite), ESTIMATORS.index(estimator), Ks, indices.contiguous(),
+    return _Composite.apply(COMPOSITES.index(composite), ESTIMATORS.index(estimator), deterministic, Ks,
+                            indices.contiguous(),
                             probs.contiguous(), proj.means2d, proj.conics, proj.amps, proj.normals_cam,
                             proj.plane_offsets, proj.depths, features, bg)
 
@@ -130,7 +142,7 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
           features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
           samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
           background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10, lowpass: float = 1.0,
-          seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3) -> SplatOutput:
+          seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True) -> SplatOutput:
     """Render surfel features by EWA surface splatting with per-pixel Poisson sampling (unbiased backward).
 
     For every camera and pixel, a sequential Poisson sample of ``samples`` points is drawn with size
@@ -154,6 +166,10 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
         background: ``[C]`` differentiable background (zeros if None). near, far: clipping on the centre
             depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed.
         hermite_order, hermite_tol: tree expansion order cap and relative truncation tolerance.
+        deterministic: True (default) gives run-to-run and thread-count independent, bitwise identical
+            gradients (fixed-order per-point gather). False selects the faster single-pass CPU backward
+            that scatters with atomics (equal up to float rounding). CUDA has only the deterministic
+            backward; ``False`` on CUDA tensors silently uses it.
 
     Returns:
         :class:`SplatOutput`: ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``,
@@ -164,10 +180,12 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
                    background=background, C=C, dtype=means.dtype, device=means.device)
     check_sampling(samples=samples, eps=eps, estimator=estimator, seed=seed, hermite_order=hermite_order,
                    hermite_tol=hermite_tol)
+    check_deterministic(deterministic)
     proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass)
     indices, probs, total, work = sample(proj, Ks, width, height, samples=samples, eps=eps, seed=seed,
                                          hermite_order=hermite_order, hermite_tol=hermite_tol)
     image, alpha, depth = composite_sample(proj, features, Ks, indices, probs, background=background,
-                                                 composite=composite, estimator=estimator)
+                                                 composite=composite, estimator=estimator,
+                                                 deterministic=deterministic)
     return SplatOutput(image=image, alpha=alpha, depth=depth, total=total, indices=indices, probs=probs,
                        work=work)

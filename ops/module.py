@@ -23,11 +23,12 @@ class Splatter(nn.Module):
 
     def __init__(self, samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
                  near: float = 0.01, far: float = 1e10, lowpass: float = 1.0, base_seed: int = 0,
-                 hermite_order: int = 8, hermite_tol: float = 1e-3) -> None:
+                 hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True) -> None:
         super().__init__()
         self.samples, self.eps, self.estimator, self.composite = samples, eps, estimator, composite
         self.near, self.far, self.lowpass, self.base_seed = near, far, lowpass, base_seed
         self.hermite_order, self.hermite_tol = hermite_order, hermite_tol
+        self.deterministic = deterministic  # False: faster atomic-scatter CPU backward (see splat)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long), persistent=True)
 
     def forward(self, means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -40,7 +41,8 @@ class Splatter(nn.Module):
         return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, samples=self.samples,
                      eps=self.eps, estimator=self.estimator, composite=self.composite, background=background,
                      near=self.near, far=self.far, lowpass=self.lowpass, seed=seed,
-                     hermite_order=self.hermite_order, hermite_tol=self.hermite_tol)
+                     hermite_order=self.hermite_order, hermite_tol=self.hermite_tol,
+                     deterministic=self.deterministic)
 
     def extra_repr(self) -> str:
         return (f"samples={self.samples}, eps={self.eps}, estimator={self.estimator!r}, "

@@ -138,3 +138,9 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol)
     t = _real("hermite_tol", hermite_tol)
     if not 0 < t < 1:
         raise ValueError(f"hermite_tol: expected a value in (0, 1), got {hermite_tol}")
+
+
+def check_deterministic(deterministic) -> None:
+    """``deterministic`` must be a bool (fixed-order backward vs atomic-scatter backward)."""
+    if not isinstance(deterministic, bool):
+        raise TypeError(f"deterministic: expected a bool, got {type(deterministic).__name__}")

@@ -13,6 +13,7 @@ TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",
     "demo": "nsplat.tasks.demo",
     "reconstruct": "nsplat.tasks.reconstruct",
+    "neural": "nsplat.tasks.neural",
 }
 
 

@@ -69,6 +69,7 @@ NS_HD InternalNode karras_node(const uint64_t* keys, int64_t n, int64_t i) {
 struct NodeAgg {
   double box[4];  // min x, min y, max x, max y of the means
   double sum_amp; // sum of amplitudes A (upper bound of each lambda's peak)
+  double log_amp; // log(sum_amp)
   double h2;      // largest principal variance among the points (isotropic majorant bandwidth^2)
 };
 
@@ -76,6 +77,7 @@ NS_HD void agg_point(NodeAgg* a, double x, double y, double amp, double sig2) {
   a->box[0] = a->box[2] = x;
   a->box[1] = a->box[3] = y;
   a->sum_amp = amp;
+  a->log_amp = log(amp);
   a->h2 = sig2;
 }
 
@@ -85,6 +87,7 @@ NS_HD void agg_merge(NodeAgg* out, const NodeAgg& a, const NodeAgg& b) {
   out->box[2] = dmax(a.box[2], b.box[2]);
   out->box[3] = dmax(a.box[3], b.box[3]);
   out->sum_amp = a.sum_amp + b.sum_amp;
+  out->log_amp = log(out->sum_amp);
   out->h2 = dmax(a.h2, b.h2);
 }
 

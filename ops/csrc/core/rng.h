@@ -19,10 +19,12 @@ NS_HD uint64_t pixel_stream(uint64_t seed, int64_t camera, int64_t pixel) {
   return mix64(s + static_cast<uint64_t>(pixel));
 }
 
-// log u for point `point` of a pixel stream, u = ((h >> 11) + 0.5) * 2^-53 in (0, 1).
-NS_HD double log_uniform(uint64_t stream, int64_t point) {
+// u for point `point` of a pixel stream: ((h >> 11) + 0.5) * 2^-53 in (0, 1).
+NS_HD double uniform01(uint64_t stream, int64_t point) {
   uint64_t h = mix64(stream + static_cast<uint64_t>(point));
-  return log((static_cast<double>(h >> 11) + 0.5) * 1.1102230246251565e-16);
+  return (static_cast<double>(h >> 11) + 0.5) * 1.1102230246251565e-16;
 }
+
+NS_HD double log_uniform(uint64_t stream, int64_t point) { return log(uniform01(stream, point)); }
 
 }  // namespace nsplat

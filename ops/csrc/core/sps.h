@@ -89,7 +89,7 @@ NS_HD void node_bound(const TreeView& T, int node, double u, double v, double* l
   double dx = dmax(dmax(a.box[0] - u, u - a.box[2]), 0.0);
   double dy = dmax(dmax(a.box[1] - v, v - a.box[3]), 0.0);
   double h2 = dmax(a.h2, 1e-300);
-  double lub = log(a.sum_amp) - (dx * dx + dy * dy) / (2.0 * h2);
+  double lub = a.log_amp - (dx * dx + dy * dy) / (2.0 * h2);
   int p = T.herm_p[node];
   if (p > 0) {
     double cx = 0.5 * (a.box[0] + a.box[2]), cy = 0.5 * (a.box[1] + a.box[3]);
@@ -111,20 +111,27 @@ struct PixelStats {
   bool exhaustive;  // every point of the tree was visited (nothing pruned)
 };
 
-// Offers sorted point s to the heap.
+// Offers sorted point s to the heap. Once the heap is full, `xi_max` = exp(key of the heap top) allows a
+// conservative rejection u >= xi_max * lambda * (1 + 1e-12) without computing log u; accepted candidates
+// are compared on exact keys, so the sample is the same as with exact keys everywhere.
 NS_HD void offer_point(const TreeView& T, int s, double u, double v, uint64_t stream, int m, double* key, int* id,
-                       int* cnt, double* visited) {
+                       int* cnt, double* visited, double* xi_max) {
   double lam_log = log_size(T.mu + 2 * s, T.con + 3 * s, T.logA[s], u, v);
+  double lam = exp(lam_log);
+  *visited += lam;
   int pid = T.id[s];
-  double k = log_uniform(stream, pid) - lam_log;
-  *visited += exp(lam_log);
+  double un = uniform01(stream, pid);
+  if (*cnt == m && un >= *xi_max * lam * (1.0 + 1e-12)) return;
+  double k = log(un) - lam_log;
   if (*cnt < m) {
     heap_push(key, id, *cnt, k, pid);
     ++*cnt;
+    if (*cnt == m) *xi_max = exp(key[0]);
   } else if (key_less(k, pid, key[0], id[0])) {
     key[0] = k;
     id[0] = pid;
     heap_sift_down(key, id, m, 0);
+    *xi_max = exp(key[0]);
   }
 }
 
@@ -135,9 +142,9 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
   PixelStats st{0.0, 0, true};
   *cnt = 0;
   if (T.n == 0) return st;
-  double visited = 0.0;
+  double visited = 0.0, xi_max = INFINITY;
   if (T.n == 1) {
-    offer_point(T, 0, u, v, stream, m, key, idx, cnt, &visited);
+    offer_point(T, 0, u, v, stream, m, key, idx, cnt, &visited, &xi_max);
     st.total = visited;
     st.evaluated = 1;
     return st;
@@ -167,7 +174,7 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     }
     const InternalNode& nd = T.nodes[node];
     if (nd.last - nd.first + 1 <= kLeafSize) {
-      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, stream, m, key, idx, cnt, &visited);
+      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, stream, m, key, idx, cnt, &visited, &xi_max);
       st.evaluated += nd.last - nd.first + 1;
       continue;
     }
@@ -176,7 +183,7 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     int internal = 0;
     for (int c = 0; c < 2; ++c) {
       if (child[c] < 0) {
-        offer_point(T, ~child[c], u, v, stream, m, key, idx, cnt, &visited);
+        offer_point(T, ~child[c], u, v, stream, m, key, idx, cnt, &visited, &xi_max);
         st.evaluated += 1;
         cl[c] = -INFINITY;
       } else {

@@ -9,7 +9,9 @@
 #include "hermite.h"
 #include "lbvh.h"
 
-#if defined(__CUDACC__)
+// Device intrinsics only in nvcc's device pass (__CUDA_ARCH__): propagate_up is __host__ __device__, and its
+// host instantiation (g++, or nvcc's host pass) uses the GCC atomics.
+#if defined(__CUDA_ARCH__)
 #define NS_ATOMIC_INC(ptr) (__threadfence(), atomicAdd((ptr), 1))
 #define NS_FENCE() __threadfence()
 #else

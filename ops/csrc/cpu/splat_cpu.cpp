@@ -360,9 +360,13 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
 
 }  // namespace nsplat
 
+#include "scatter_cpu.h"  // composite_backward_scatter (non-deterministic backward)
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sample", &nsplat::sample, "Per-pixel SPS sample over the radix tree (CPU)");
   m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
   m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
   m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
+  m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
+        "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");
 }

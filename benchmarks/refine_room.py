@@ -1,0 +1,86 @@
+"""Pose and scene refinement on the synthetic room: before/after pose error, PSNR/SSIM, time, memory.
+
+Runs the ``refine`` task (configs/refine_room.yaml, with the size overrides below) once per
+gradient estimator (``ht`` and ``sampled``), each in its own process (so peak RSS is per run), then
+prints a table, writes ``benchmarks/results/refine_room.json`` and before/after images to
+``docs/images/refine/``.
+
+    OMP_NUM_THREADS=2 python benchmarks/refine_room.py [--steps 150] [--width 64 --height 48]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+IMAGES = ROOT / "docs" / "images" / "refine"
+
+
+def run_one(estimator: str, args: argparse.Namespace) -> dict:
+    run_dir = ROOT / "runs" / f"bench-refine-room-{estimator}"
+    overrides = [f"render.estimator={estimator}", f"optim.steps={args.steps}",
+                 f"data.room.width={args.width}", f"data.room.height={args.height}",
+                 f"data.room.frames={args.frames}", f"optim.decay_every={args.steps // 3}",
+                 f"filter.start={args.steps // 5}", f"filter.every={args.steps // 3}",
+                 f"log.checkpoint_every={args.steps}"]
+    cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(ROOT / "configs" / "refine_room.yaml"),
+           "--run", str(run_dir), "--device", "cpu", *overrides]
+    subprocess.run(cmd, check=True, cwd=ROOT)
+    init = json.loads((run_dir / "metrics_initial.json").read_text())
+    final = json.loads((run_dir / "metrics_final.json").read_text())
+    return {"run_dir": str(run_dir.relative_to(ROOT)), "initial": init, "final": final, "overrides": overrides}
+
+
+def save_images(run_dir: Path, tag: str, frames: list[int]) -> None:
+    from nsplat.data.room import RoomSpec, load_room  # noqa: F401 (same cache as the task)
+    cfg = __import__("yaml").safe_load((run_dir / "config.yaml").read_text())
+    spec = RoomSpec(**cfg["data"]["room"])
+    room = load_room(spec, ROOT / cfg["data"]["cache_dir"])
+    before = torch.load(run_dir / "renders_initial.pt")
+    after = torch.load(run_dir / "renders_final.pt")
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    for f in frames:
+        ref = room.images[f] * room.masks[f, ..., None]
+        row = torch.cat([ref, before[f].clamp(0, 1), after[f].clamp(0, 1),
+                         (before[f] - room.images[f]).abs().clamp(0, 1), (after[f] - room.images[f]).abs().clamp(0, 1)], 1)
+        big = row.repeat_interleave(3, 0).repeat_interleave(3, 1)
+        iio.imwrite(IMAGES / f"room_{tag}_frame{f:02d}.png", (big.numpy() * 255).round().astype(np.uint8))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--steps", type=int, default=150)
+    p.add_argument("--width", type=int, default=64)
+    p.add_argument("--height", type=int, default=48)
+    p.add_argument("--frames", type=int, default=12)
+    p.add_argument("--estimators", nargs="+", default=["ht", "sampled"])
+    args = p.parse_args()
+    out = {"args": vars(args), "runs": {}}
+    for est in args.estimators:
+        out["runs"][est] = run_one(est, args)
+        save_images(ROOT / out["runs"][est]["run_dir"], est, [0, args.frames // 2])
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "refine_room.json").write_text(json.dumps(out, indent=1))
+    hdr = f"{'estimator':>9} | {'rot° before':>11} {'after':>7} {'÷':>5} | {'trans before':>12} {'after':>7} {'÷':>5} | " \
+          f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}"
+    print(hdr)
+    print("-" * len(hdr))
+    for est, r in out["runs"].items():
+        i, f = r["initial"], r["final"]
+        print(f"{est:>9} | {i['rot_deg']:11.3f} {f['rot_deg']:7.3f} {i['rot_deg'] / f['rot_deg']:5.1f} | "
+              f"{i['trans']:12.4f} {f['trans']:7.4f} {i['trans'] / f['trans']:5.1f} | "
+              f"{i['psnr']:6.2f}/{f['psnr']:6.2f} | {i['ssim']:6.3f}/{f['ssim']:6.3f} "
+              f"{100 * (f['ssim'] / i['ssim'] - 1):6.1f} | {i['points']:5d}/{f['points']:5d} | "
+              f"{f['seconds']:7.1f} | {f['peak_rss_mb']:7.0f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""Table 3: influence of the number of training views (16, 64, 124, 300) on bunny reconstruction (ht).
+
+``--setting paper``: 300 epochs for every view count, as in the paper (more views → more steps).
+``--setting cpu``: the CPU budget of ``benchmarks/table1.py`` held at a **fixed number of optimisation
+steps** (that of the 24-view CPU runs: 20 epochs × 24 views / batch 6 = 80 steps), i.e.
+``epochs = round(480 / views)`` (at least 1), repositioning about 4 times per run — a fixed-compute
+version of the ablation, because 300 views × 20 epochs does not fit the CPU budget. Writes
+``benchmarks/results/table3-<setting>.json`` and ``docs/images/reconstruct/ablation_views-<setting>.png``.
+
+    python benchmarks/table3.py --jobs 2
+"""
+from __future__ import annotations
+
+from table1 import IMAGES, common_args, fmt, run_all, write_json
+from table2 import plot
+
+VIEWS = (16, 64, 124, 300)
+#: The paper's Table 3 (HD, CD as printed).
+PAPER_TABLE3 = {16: (49.159, 20.138), 64: (1.097, 0.156), 124: (0.442, 0.125), 300: (0.409, 0.13)}
+CPU_VIEW_RENDERS = 480  # 20 epochs x 24 views
+
+
+def overrides(views: int, setting: str) -> list[str]:
+    ov = ["render.renderer=splat", "render.estimator=ht", f"data.views={views}"]
+    if setting == "cpu":
+        epochs = max(1, round(CPU_VIEW_RENDERS / views))
+        ov += [f"optim.epochs={epochs}", f"optim.reposition_every={max(1, epochs // 4)}",
+               f"eval_every={max(1, epochs // 4)}"]
+    return ov
+
+
+def main() -> None:
+    args = common_args(__doc__.splitlines()[0])
+    jobs = [(f"bunny-v{v}", "bunny", overrides(v, args.setting)) for v in VIEWS]
+    rows = run_all(jobs, "table3", args)
+    lines = ["| views | epochs | HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | paper HD | paper CD | time s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for v, r in zip(VIEWS, rows):
+        lines.append(f"| {v} | {r['epochs']} | {fmt(r['hausdorff'])} | {fmt(r['chamfer'])} | {fmt(r['hausdorff_sq'])} | "
+                     f"{fmt(r['chamfer_sq'])} | {PAPER_TABLE3[v][0]} | {PAPER_TABLE3[v][1]} | {r['wall_s']:.0f} |")
+    table = "\n".join(lines)
+    print(table)
+    plot(list(VIEWS), rows, "training views", IMAGES / f"ablation_views-{args.setting}.png", logx=True)
+    print(f"\nwrote {write_json('table3', args, rows, {'paper': PAPER_TABLE3, 'markdown': table})}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""Loader for NeRF-synthetic scenes (``transforms_{train,val,test}.json`` + RGBA PNGs).
+
+Cameras arrive as OpenGL/Blender camera→world matrices and a horizontal field of view
+(``camera_angle_x``); they are converted once, here, to the library's OpenCV world→camera
+``viewmats`` and pixel intrinsics ``Ks`` (square pixels, principal point at the image centre).
+Images are composited over a background colour (white by default, as in NeRF's evaluation) and
+optionally resized, with the intrinsics scaled to match.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Sequence
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from nsplat.cameras import intrinsics_from_fov, opengl_c2w_to_viewmat, scale_intrinsics
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclasses.dataclass
+class Views:
+    """A set of posed images (one split of a scene).
+
+    Attributes:
+        images: ``[B, H, W, 3]`` float32 RGB in [0, 1], composited over ``background``.
+        alphas: ``[B, H, W, 1]`` float32 coverage in [0, 1].
+        viewmats: ``[B, 4, 4]`` float32 OpenCV world→camera.
+        Ks: ``[B, 3, 3]`` float32 intrinsics in pixels of the (resized) images.
+        names: ``B`` frame names (``file_path`` of the JSON, e.g. ``./test/r_0``).
+        background: ``[3]`` the colour composited under the images.
+    """
+
+    images: torch.Tensor
+    alphas: torch.Tensor
+    viewmats: torch.Tensor
+    Ks: torch.Tensor
+    names: list[str]
+    background: torch.Tensor
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    def to(self, device: torch.device | str) -> "Views":
+        """Copy with every tensor on ``device``."""
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name).to(device)
+                                            for f in dataclasses.fields(self)
+                                            if isinstance(getattr(self, f.name), torch.Tensor)})
+
+
+def _image_path(root: Path, file_path: str) -> Path:
+    p = root / file_path
+    return p if p.suffix else p.with_suffix(".png")
+
+
+def _resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Resize ``[B,H,W,C]`` to ``size = (H', W')``: area averaging when shrinking by an integer
+    factor, antialiased bilinear otherwise."""
+    B, H, W, C = x.shape
+    if (H, W) == size:
+        return x
+    xc = x.permute(0, 3, 1, 2)
+    if H % size[0] == 0 and W % size[1] == 0:
+        out = F.interpolate(xc, size=size, mode="area")
+    else:
+        out = F.interpolate(xc, size=size, mode="bilinear", antialias=True, align_corners=False)
+    return out.permute(0, 2, 3, 1).contiguous()
+
+
+def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] | None = None,
+               background: Sequence[float] = (1.0, 1.0, 1.0), limit: int | None = None) -> Views:
+    """Load one split of a NeRF-synthetic scene.
+
+    Args:
+        root: scene folder holding ``transforms_<split>.json``.
+        split: ``train``, ``val`` or ``test``.
+        resolution: output size, ``W`` (square) or ``(W, H)``; ``None`` keeps the file size.
+        background: RGB in [0, 1] composited under the RGBA images.
+        limit: keep only the first ``limit`` frames (``None``: all).
+
+    Returns:
+        :class:`Views` (float32, CPU).
+    """
+    root = Path(root)
+    if split not in SPLITS:
+        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+    meta_path = root / f"transforms_{split}.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"root: no {meta_path.name} in {root}")
+    meta = json.loads(meta_path.read_text())
+    if "camera_angle_x" not in meta or "frames" not in meta:
+        raise ValueError(f"{meta_path}: expected keys 'camera_angle_x' and 'frames'")
+    bg = torch.tensor([float(c) for c in background], dtype=torch.float32)
+    if bg.shape != (3,) or bool(((bg < 0) | (bg > 1)).any()):
+        raise ValueError(f"background: expected three values in [0, 1], got {list(background)}")
+    frames = meta["frames"][:limit] if limit is not None else meta["frames"]
+    if not frames:
+        raise ValueError(f"{meta_path}: no frames")
+    rgba, c2w, names = [], [], []
+    for fr in frames:
+        img = iio.imread(_image_path(root, fr["file_path"]))
+        if img.ndim != 3 or img.shape[2] not in (3, 4):
+            raise ValueError(f"{fr['file_path']}: expected an RGB or RGBA image, got shape {img.shape}")
+        img = img.astype(np.float32) / float(np.iinfo(img.dtype).max)
+        if img.shape[2] == 3:
+            img = np.concatenate([img, np.ones_like(img[..., :1])], -1)
+        rgba.append(torch.from_numpy(img))
+        c2w.append(torch.tensor(fr["transform_matrix"], dtype=torch.float64))
+        names.append(str(fr["file_path"]))
+    if len({tuple(t.shape) for t in rgba}) != 1:
+        raise ValueError(f"{root}: images of split {split!r} differ in size")
+    x = torch.stack(rgba)
+    H0, W0 = x.shape[1:3]
+    rgb, alpha = x[..., :3], x[..., 3:]
+    x = torch.cat([rgb * alpha + bg * (1.0 - alpha), alpha], -1)
+    if resolution is None:
+        W, H = W0, H0
+    elif isinstance(resolution, int):
+        W = H = resolution
+    else:
+        W, H = (int(v) for v in resolution)
+    if W < 1 or H < 1:
+        raise ValueError(f"resolution: expected positive sizes, got {resolution}")
+    x = _resize(x, (H, W))
+    viewmats = opengl_c2w_to_viewmat(torch.stack(c2w))
+    viewmats[:, 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=viewmats.dtype)  # exact after inverse
+    Ks = intrinsics_from_fov(float(meta["camera_angle_x"]), W0, H0, batch=len(frames), dtype=torch.float64)
+    Ks = scale_intrinsics(Ks, W / W0, H / H0)
+    return Views(images=x[..., :3].contiguous(), alphas=x[..., 3:].contiguous(),
+                 viewmats=viewmats.float(), Ks=Ks.float(), names=names, background=bg)

@@ -1,0 +1,88 @@
+"""The DSS shape-reconstruction point clouds (bunny, teapot, yoga1, yoga6) with normals, via plyfile.
+
+The files live in ``<data root>/dss_pointclouds/`` (by default ``<repo>/../shared/data``). Each is a PLY
+with a ``vertex`` element carrying ``x y z nx ny nz``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData
+
+#: Shape name → file name inside ``dss_pointclouds/``.
+DSS_SHAPES: dict[str, str] = {
+    "bunny": "bunny-8000.ply",
+    "teapot": "teapot_normal_dense.ply",
+    "yoga1": "yoga1_out.ply",
+    "yoga6": "yoga6_out.ply",
+}
+
+
+def default_data_root() -> Path:
+    """``<repo root>/../shared/data`` (the shared, read-only data folder)."""
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+@dataclasses.dataclass
+class PointCloud:
+    """An oriented point cloud.
+
+    Attributes:
+        points: ``[N,3]`` positions. normals: ``[N,3]`` unit normals. name: shape name or file stem.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    name: str
+
+    @property
+    def center(self) -> torch.Tensor:
+        """``[3]`` centre of the axis-aligned bounding box."""
+        return 0.5 * (self.points.min(0).values + self.points.max(0).values)
+
+    @property
+    def radius(self) -> float:
+        """Largest distance of a point from :attr:`center` (radius of the enclosing sphere about it)."""
+        return float((self.points - self.center).norm(dim=-1).max())
+
+
+def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> PointCloud:
+    """Read ``x y z nx ny nz`` from the ``vertex`` element of a PLY; normals are normalised.
+
+    Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming missing properties or
+    zero-length normals.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no PLY file at {path}")
+    ply = PlyData.read(str(path))
+    if "vertex" not in [e.name for e in ply.elements]:
+        raise ValueError(f"{path}: no 'vertex' element")
+    v = ply["vertex"]
+    names = set(v.data.dtype.names)
+    missing = [k for k in ("x", "y", "z", "nx", "ny", "nz") if k not in names]
+    if missing:
+        raise ValueError(f"{path}: missing vertex properties {missing}")
+    pts = np.stack([np.asarray(v[k], np.float64) for k in ("x", "y", "z")], 1)
+    nrm = np.stack([np.asarray(v[k], np.float64) for k in ("nx", "ny", "nz")], 1)
+    length = np.linalg.norm(nrm, axis=1)
+    if (length == 0).any():
+        raise ValueError(f"{path}: {int((length == 0).sum())} vertices have zero-length normals")
+    nrm = nrm / length[:, None]
+    return PointCloud(torch.as_tensor(pts, dtype=dtype), torch.as_tensor(nrm, dtype=dtype), path.stem)
+
+
+def load_dss_shape(name: str, root: str | Path | None = None, dtype: torch.dtype = torch.float32) -> PointCloud:
+    """Load DSS shape ``name`` (one of :data:`DSS_SHAPES`) from ``root/dss_pointclouds``.
+
+    ``root`` defaults to :func:`default_data_root`.
+    """
+    if name not in DSS_SHAPES:
+        raise ValueError(f"shape: unknown DSS shape {name!r}; expected one of {sorted(DSS_SHAPES)}")
+    folder = Path(root) if root else default_data_root()
+    pc = read_oriented_ply(folder / "dss_pointclouds" / DSS_SHAPES[name], dtype=dtype)
+    pc.name = name
+    return pc

@@ -1,0 +1,98 @@
+"""Second-order spherical-harmonics (SH) irradiance shading of per-point albedo.
+
+Basis: the real, orthonormal SH ``Y_lm`` on the unit sphere (``∫ Y_lm Y_l'm' dω = δ``) up to
+``l = 2``, in the order ``(0,0), (1,-1), (1,0), (1,1), (2,-2), (2,-1), (2,0), (2,1), (2,2)``, of
+a unit world-space normal ``n = (x, y, z)``::
+
+    Y_00 = 1/(2√π)                 = 0.282095
+    Y_1-1 = √(3/4π)·y, Y_10 = √(3/4π)·z, Y_11 = √(3/4π)·x          (√(3/4π) = 0.488603)
+    Y_2-2 = ½√(15/π)·xy, Y_2-1 = ½√(15/π)·yz, Y_21 = ½√(15/π)·xz      (½√(15/π) = 1.092548)
+    Y_20 = ¼√(5/π)·(3z² − 1)                                         (¼√(5/π) = 0.315392)
+    Y_22 = ¼√(15/π)·(x² − y²)                                        (¼√(15/π) = 0.546274)
+
+Lighting: the 9 coefficients ``L_lm`` per colour channel of the distant incident radiance
+``L(ω) = Σ L_lm Y_lm(ω)``. Irradiance of a surface with normal ``n`` (Ramamoorthi & Hanrahan 2001,
+exact for this band-limited ``L`` when no clamping of the cosine lobe beyond ``l = 2`` matters)::
+
+    E(n) = Σ_lm Â_l L_lm Y_lm(n),   Â_0 = π, Â_1 = 2π/3, Â_2 = π/4
+
+and a Lambertian point with albedo ``a`` leaves radiance ``B = a · E(n) / π`` (clamped at 0 when
+``clamp`` is set). Hand check: a uniform unit-radiance sky, ``L_00 = √(4π)`` and the rest 0, gives
+``E = π·√(4π)·1/(2√π) = π`` and ``B = a`` for every normal. :class:`SHLighting` starts there (scaled
+by ``ambient``), so an un-optimised scene renders its albedo.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+#: Normalisation constants of the real SH basis (see the module docstring).
+_C0 = 0.5 / math.sqrt(math.pi)
+_C1 = math.sqrt(3.0 / (4.0 * math.pi))
+_C2 = 0.5 * math.sqrt(15.0 / math.pi)
+_C20 = 0.25 * math.sqrt(5.0 / math.pi)
+_C22 = 0.25 * math.sqrt(15.0 / math.pi)
+#: Cosine-lobe convolution factors Â_l for the 9 coefficients, in basis order.
+BAND_FACTORS = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5
+
+
+def sh_basis(normals: torch.Tensor) -> torch.Tensor:
+    """Real orthonormal SH basis up to l = 2 of unit directions ``normals [..., 3]`` → ``[..., 9]``.
+
+    The input is normalised here; order as in the module docstring.
+    """
+    n = torch.nn.functional.normalize(normals, dim=-1)
+    x, y, z = n.unbind(-1)
+    return torch.stack([
+        torch.full_like(x, _C0),
+        _C1 * y, _C1 * z, _C1 * x,
+        _C2 * x * y, _C2 * y * z, _C20 * (3.0 * z * z - 1.0), _C2 * x * z, _C22 * (x * x - y * y),
+    ], dim=-1)
+
+
+def sh_irradiance(normals: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+    """Irradiance ``E(n) [..., C]`` of unit normals ``[..., 3]`` under SH radiance ``coeffs [9, C]``."""
+    if coeffs.shape[0] != 9 or coeffs.dim() != 2:
+        raise ValueError(f"coeffs must be [9, C], got {tuple(coeffs.shape)}")
+    a = torch.tensor(BAND_FACTORS, dtype=coeffs.dtype, device=coeffs.device)
+    return sh_basis(normals).to(coeffs.dtype) @ (a[:, None] * coeffs)
+
+
+def sh_shade(albedo: torch.Tensor, normals: torch.Tensor, coeffs: torch.Tensor,
+             clamp: bool = True) -> torch.Tensor:
+    """Lambertian radiance ``albedo · E(n) / π``: albedo ``[N, C]``, normals ``[N, 3]``, coeffs
+    ``[9, C]`` → ``[N, C]`` (irradiance clamped at 0 if ``clamp``)."""
+    if albedo.shape[-1] != coeffs.shape[-1]:
+        raise ValueError(f"albedo has {albedo.shape[-1]} channels but coeffs has {coeffs.shape[-1]}")
+    e = sh_irradiance(normals, coeffs)
+    if clamp:
+        e = e.clamp_min(0.0)
+    return albedo * e / math.pi
+
+
+class SHLighting(torch.nn.Module):
+    """Learnable 2nd-order SH lighting: ``coeffs [9, C]`` (9 per channel).
+
+    Args:
+        channels: colour channels C.
+        ambient: initial uniform radiance (``L_00 = ambient·√(4π)``, others 0), so that the initial
+            shading multiplies albedo by ``ambient``.
+        clamp: clamp the irradiance at 0.
+        learnable: make the coefficients a parameter (else a buffer).
+    """
+
+    def __init__(self, channels: int = 3, ambient: float = 1.0, clamp: bool = True,
+                 learnable: bool = True) -> None:
+        super().__init__()
+        c = torch.zeros(9, channels)
+        c[0] = ambient * math.sqrt(4.0 * math.pi)
+        self.clamp = clamp
+        if learnable:
+            self.coeffs = torch.nn.Parameter(c)
+        else:
+            self.register_buffer("coeffs", c)
+
+    def forward(self, albedo: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """Shaded colours ``[N, C]`` of points with albedo ``[N, C]`` and normals ``[N, 3]``."""
+        return sh_shade(albedo, normals, self.coeffs, clamp=self.clamp)

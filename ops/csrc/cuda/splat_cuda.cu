@@ -1,0 +1,602 @@
+// CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
+//
+// Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
+//   sample_cuda                     per camera: parallel tree build (Karras 2012), then one thread per pixel
+//   composite_forward_cuda          one thread per (camera, pixel)
+//   composite_backward_pixels_cuda  pass 1, one thread per (camera, pixel)
+//   composite_backward_points_cuda  pass 2, one thread per point over its entries sorted by (point, camera)
+// Every loop of the CPU backend maps to a kernel whose threads run the CPU loop body unchanged, so both
+// backends draw identical samples and agree up to floating-point rounding (FMA contraction, libm vs CUDA
+// math). No atomics in the outputs: results are deterministic run to run.
+//
+// Memory: the per-pixel heap lives in global memory (the `indices` output plus a double key scratch of
+// pixels x samples per camera), so `samples` is limited by memory only; all slot offsets are 64-bit.
+//
+// Only the CUDA runtime/cub headers and torch's ATen + c10/cuda headers are needed here (not ATen/cuda, which
+// pulls in cuBLAS/cuSPARSE headers): the Python binding lives in bindings.cpp, and this file compiles to an
+// object with a bare CUDA toolkit and a CPU-only torch wheel (.ci/cuda_compile_check.sh).
+//
+// With NSPLAT_CUDA_EMULATE defined (emulate.cpp), the same file compiles with the host compiler: kernels run
+// sequentially over their grid on the CPU (emulate.h), cub's sort/scan are replaced by std ones. Tests use
+// that build to check the launch code against the CPU backend bit for bit on machines without a GPU.
+#include <ATen/ATen.h>
+#include <ATen/Dispatch.h>
+
+#include <algorithm>
+#include <vector>
+
+#if defined(NSPLAT_CUDA_EMULATE)
+#include "emulate.h"
+#else
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+
+#include <cub/device/device_radix_sort.cuh>
+#include <cub/device/device_scan.cuh>
+
+// Kernel launch on a stream; emulate.h gives the host emulation's version.
+#define NS_LAUNCH(kernel, grid, block, stream, ...) kernel<<<(grid), (block), 0, (stream)>>>(__VA_ARGS__)
+#define NS_LAUNCH_CHECK() C10_CUDA_KERNEL_LAUNCH_CHECK()
+#endif
+
+#include "../core/composite.h"
+#include "../core/sps.h"
+#include "../core/tree_build.h"
+
+namespace nsplat {
+namespace {
+
+constexpr int kThreads = 256;       // block size of the light kernels
+constexpr int kPixelThreads = 128;  // block size of the per-pixel traversal / compositing kernels
+constexpr int kReduceBlocks = 256;  // first-stage blocks of the bounding-box reduction
+constexpr int kFeatChunk = 8;       // channels accumulated in registers at once in pass 2
+
+// Blocks for a grid-stride loop over n elements (n > 0).
+unsigned int blocks_for(int64_t n, int threads) {
+  const int64_t b = (n + threads - 1) / threads;
+  return static_cast<unsigned int>(std::min<int64_t>(std::max<int64_t>(b, 1), 1 << 20));
+}
+
+#if defined(NSPLAT_CUDA_EMULATE)
+using Stream = emu::Stream;
+using DeviceGuard = emu::DeviceGuard;
+Stream current_stream() { return emu::current_stream(); }
+#else
+using Stream = cudaStream_t;
+using DeviceGuard = c10::cuda::CUDAGuard;
+Stream current_stream() { return c10::cuda::getCurrentCUDAStream(); }
+#endif
+
+at::Tensor bytes(int64_t n, const at::TensorOptions& dev) { return at::empty({std::max<int64_t>(n, 1)}, dev.dtype(at::kByte)); }
+
+template <typename T>
+T* as(at::Tensor& t) { return reinterpret_cast<T*>(t.data_ptr()); }
+
+// Ascending sort of n 64-bit keys (cub radix sort over all 64 bits).
+void sort_keys(const uint64_t* in, uint64_t* out, int64_t n, const at::TensorOptions& dev, Stream stream) {
+#if defined(NSPLAT_CUDA_EMULATE)
+  (void)dev; (void)stream;
+  std::copy(in, in + n, out);
+  std::sort(out, out + n);
+#else
+  size_t temp_bytes = 0;
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(nullptr, temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
+  at::Tensor temp = bytes(static_cast<int64_t>(temp_bytes), dev);
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
+#endif
+}
+
+// out[i] = sum of in[0..i) over n entries.
+void exclusive_sum(const int64_t* in, int64_t* out, int64_t n, const at::TensorOptions& dev, Stream stream) {
+#if defined(NSPLAT_CUDA_EMULATE)
+  (void)dev; (void)stream;
+  int64_t acc = 0;
+  for (int64_t i = 0; i < n; ++i) { out[i] = acc; acc += in[i]; }
+#else
+  size_t temp_bytes = 0;
+  C10_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, temp_bytes, in, out, static_cast<int>(n), stream));
+  at::Tensor temp = bytes(static_cast<int64_t>(temp_bytes), dev);
+  C10_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), stream));
+#endif
+}
+
+#define NS_GRID_STRIDE(i, n) \
+  for (int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; i < (n); \
+       i += static_cast<int64_t>(blockDim.x) * gridDim.x)
+
+// The CPU builder's std::min / std::max (NaN never replaces the running value).
+__device__ __forceinline__ double cpu_min(double cur, double x) { return x < cur ? x : cur; }
+__device__ __forceinline__ double cpu_max(double cur, double x) { return cur < x ? x : cur; }
+
+// ---------------------------------------------------------------------------------------------------------
+// Tree build kernels (one camera). Points with amp > 0 are "valid" (the CPU builder's filter).
+
+// Stage 1 of the box of valid means: per-thread partial (lox, loy, hix, hiy) and valid count over a grid
+// stride (no shared memory or barriers: the partials are few, parts x kThreads).
+template <typename S>
+__global__ void box_partial_kernel(const S* __restrict__ mu, const S* __restrict__ amp, int64_t N,
+                                   double* __restrict__ part_box, int64_t* __restrict__ part_cnt) {
+  double lox = INFINITY, loy = INFINITY, hix = -INFINITY, hiy = -INFINITY;
+  int64_t cnt = 0;
+  NS_GRID_STRIDE(k, N) {
+    if (!(amp[k] > S(0))) continue;
+    const double x = static_cast<double>(mu[2 * k]), y = static_cast<double>(mu[2 * k + 1]);
+    lox = cpu_min(lox, x);
+    hix = cpu_max(hix, x);
+    loy = cpu_min(loy, y);
+    hiy = cpu_max(hiy, y);
+    ++cnt;
+  }
+  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  part_box[4 * t] = lox;
+  part_box[4 * t + 1] = loy;
+  part_box[4 * t + 2] = hix;
+  part_box[4 * t + 3] = hiy;
+  part_cnt[t] = cnt;
+}
+
+// Stage 2: one thread per output value folds the partials into box[4] and count[1].
+__global__ void box_final_kernel(const double* __restrict__ part_box, const int64_t* __restrict__ part_cnt,
+                                 int64_t parts, double* __restrict__ box, int64_t* __restrict__ count) {
+  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (t < 4) {
+    double acc = t < 2 ? INFINITY : -INFINITY;
+    for (int64_t i = 0; i < parts; ++i) acc = t < 2 ? cpu_min(acc, part_box[4 * i + t]) : cpu_max(acc, part_box[4 * i + t]);
+    box[t] = acc;
+  } else if (t == 4) {
+    int64_t cnt = 0;
+    for (int64_t i = 0; i < parts; ++i) cnt += part_cnt[i];
+    *count = cnt;
+  }
+}
+
+// Morton keys of valid points; invalid points get the all-ones key, which sorts after every valid key
+// (a valid key's low 32 bits hold an index < 2^31).
+template <typename S>
+__global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ amp, int64_t N,
+                              const double* __restrict__ box, uint64_t* __restrict__ keys) {
+  const double lox = box[0], loy = box[1], hix = box[2], hiy = box[3];
+  const double ex = hix - lox, ey = hiy - loy;
+  const double ext = ex < ey ? ey : ex;  // std::max(ex, ey), as on the CPU
+  const double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
+  NS_GRID_STRIDE(k, N) {
+    keys[k] = amp[k] > S(0)
+                  ? morton_key(static_cast<double>(mu[2 * k]), static_cast<double>(mu[2 * k + 1]), lox, loy, inv_ext, k)
+                  : ~0ull;
+  }
+}
+
+// Gathers the sorted points' double copies (the CPU builder's second loop).
+template <typename S>
+__global__ void gather_kernel(const uint64_t* __restrict__ keys, int64_t n, const S* __restrict__ mu,
+                              const S* __restrict__ con, const S* __restrict__ amp, const S* __restrict__ sig2,
+                              int* __restrict__ id, double* __restrict__ tmu, double* __restrict__ tcon,
+                              double* __restrict__ tamp, double* __restrict__ tlogA, double* __restrict__ tsig2) {
+  NS_GRID_STRIDE(s, n) {
+    const int64_t k = static_cast<int64_t>(keys[s] & 0xFFFFFFFFull);
+    id[s] = static_cast<int>(k);
+    tmu[2 * s] = static_cast<double>(mu[2 * k]);
+    tmu[2 * s + 1] = static_cast<double>(mu[2 * k + 1]);
+    for (int c = 0; c < 3; ++c) tcon[3 * s + c] = static_cast<double>(con[3 * k + c]);
+    tamp[s] = static_cast<double>(amp[k]);
+    tlogA[s] = log(tamp[s]);
+    tsig2[s] = static_cast<double>(sig2[k]);
+  }
+}
+
+__global__ void internal_nodes_kernel(const uint64_t* __restrict__ keys, int64_t n, InternalNode* nodes,
+                                      int* parent_int, int* parent_leaf) {
+  NS_GRID_STRIDE(i, n - 1) build_internal_node(keys, n, i, nodes, parent_int, parent_leaf);
+}
+
+// Bottom-up aggregates: one thread per leaf; the second arrival at a node computes it (tree_build.h).
+// `agg` is read and written by different threads: it must not be read through the read-only cache.
+__global__ void propagate_kernel(int64_t n, const InternalNode* nodes, const int* parent_int,
+                                 const int* parent_leaf, const double* mu, const double* amp, const double* sig2,
+                                 NodeAgg* agg, int* flags) {
+  NS_GRID_STRIDE(s, n) propagate_up(s, nodes, parent_int, parent_leaf, mu, amp, sig2, agg, flags);
+}
+
+// Expansion order per node; also writes p^2 into sq[i] for the offsets' exclusive scan.
+__global__ void choose_expansion_kernel(int64_t ni, const InternalNode* __restrict__ nodes,
+                                        const NodeAgg* __restrict__ agg, double tol, int pmax, int* __restrict__ p,
+                                        double* __restrict__ err, int64_t* __restrict__ sq) {
+  NS_GRID_STRIDE(i, ni) {
+    choose_expansion(i, nodes, agg, tol, pmax, &p[i], &err[i]);
+    sq[i] = static_cast<int64_t>(p[i]) * p[i];
+  }
+}
+
+__global__ void coefficients_kernel(int64_t ni, const InternalNode* __restrict__ nodes,
+                                    const NodeAgg* __restrict__ agg, const int* __restrict__ p,
+                                    const int64_t* __restrict__ off, const double* __restrict__ mu,
+                                    const double* __restrict__ amp, double* __restrict__ coef) {
+  NS_GRID_STRIDE(i, ni) expansion_coefficients(i, nodes, agg, p, off, mu, amp, coef);
+}
+
+// A camera's tree in device memory (tensors from PyTorch's caching allocator).
+struct CudaTree {
+  int64_t n = 0;
+  at::Tensor keys, nodes, agg, herm_p, herm_off, herm_err, herm_coef, mu, con, logA, amp, sig2, id;
+
+  template <typename T>
+  static const T* ptr(const at::Tensor& t) {
+    return t.defined() && t.numel() ? reinterpret_cast<const T*>(t.data_ptr()) : nullptr;
+  }
+
+  TreeView view() const {
+    TreeView t;
+    t.n = n;
+    t.nodes = ptr<InternalNode>(nodes);
+    t.agg = ptr<NodeAgg>(agg);
+    t.herm_p = ptr<int>(herm_p);
+    t.herm_off = ptr<int64_t>(herm_off);
+    t.herm_err = ptr<double>(herm_err);
+    t.herm_coef = ptr<double>(herm_coef);
+    t.mu = ptr<double>(mu);
+    t.con = ptr<double>(con);
+    t.logA = ptr<double>(logA);
+    t.id = ptr<int>(id);
+    return t;
+  }
+};
+
+// Builds camera b's tree: the CPU builder's steps, each a kernel (or a cub primitive) over its elements.
+// Two host syncs: the number of valid points and the total coefficient count (to size the arrays).
+template <typename S>
+void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* sig2, int64_t N, int order, double tol,
+                const at::TensorOptions& dev, Stream stream) {
+  T.n = 0;
+  if (N == 0) return;
+  const auto dbl = dev.dtype(at::kDouble);
+  const auto i64 = dev.dtype(at::kLong);
+  const auto i32 = dev.dtype(at::kInt);
+
+  // 1. box of the valid means and their count.
+  const int64_t parts = std::min<int64_t>(kReduceBlocks, blocks_for(N, kThreads));
+  at::Tensor part_box = at::empty({parts * kThreads, 4}, dbl), part_cnt = at::empty({parts * kThreads}, i64);
+  at::Tensor box = at::empty({4}, dbl), count = at::empty({1}, i64);
+  NS_LAUNCH(box_partial_kernel<S>, static_cast<unsigned int>(parts), kThreads, stream, mu, amp, N,
+            part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>());
+  NS_LAUNCH_CHECK();
+  NS_LAUNCH(box_final_kernel, 1, 32, stream, part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>(),
+            parts * kThreads, box.data_ptr<double>(), count.data_ptr<int64_t>());
+  NS_LAUNCH_CHECK();
+
+  // 2. keys and their radix sort (all 64 bits; invalid points sort last).
+  at::Tensor raw = at::empty({N}, i64);
+  T.keys = at::empty({N}, i64);
+  NS_LAUNCH(morton_kernel<S>, blocks_for(N, kThreads), kThreads, stream, mu, amp, N, box.data_ptr<double>(),
+            as<uint64_t>(raw));
+  NS_LAUNCH_CHECK();
+  sort_keys(as<uint64_t>(raw), as<uint64_t>(T.keys), N, dev, stream);
+  const int64_t n = count.item<int64_t>();  // synchronises
+  T.n = n;
+  if (n == 0) return;
+  const uint64_t* keys = as<uint64_t>(T.keys);
+
+  // 3. sorted double copies.
+  T.id = at::empty({n}, i32);
+  T.mu = at::empty({n, 2}, dbl);
+  T.con = at::empty({n, 3}, dbl);
+  T.amp = at::empty({n}, dbl);
+  T.logA = at::empty({n}, dbl);
+  T.sig2 = at::empty({n}, dbl);
+  NS_LAUNCH(gather_kernel<S>, blocks_for(n, kThreads), kThreads, stream, keys, n, mu, con, amp, sig2,
+            T.id.data_ptr<int>(), T.mu.data_ptr<double>(), T.con.data_ptr<double>(), T.amp.data_ptr<double>(),
+            T.logA.data_ptr<double>(), T.sig2.data_ptr<double>());
+  NS_LAUNCH_CHECK();
+  if (n == 1) return;
+
+  // 4. internal nodes, bottom-up aggregates, expansion orders.
+  const int64_t ni = n - 1;
+  T.nodes = bytes(ni * static_cast<int64_t>(sizeof(InternalNode)), dev);
+  T.agg = bytes(ni * static_cast<int64_t>(sizeof(NodeAgg)), dev);
+  at::Tensor parent_int = at::full({ni}, -1, i32), parent_leaf = at::full({n}, -1, i32);
+  at::Tensor flags = at::zeros({ni}, i32);
+  NS_LAUNCH(internal_nodes_kernel, blocks_for(ni, kThreads), kThreads, stream, keys, n, as<InternalNode>(T.nodes),
+            parent_int.data_ptr<int>(), parent_leaf.data_ptr<int>());
+  NS_LAUNCH_CHECK();
+  NS_LAUNCH(propagate_kernel, blocks_for(n, kThreads), kThreads, stream, n, as<InternalNode>(T.nodes),
+            parent_int.data_ptr<int>(), parent_leaf.data_ptr<int>(), T.mu.data_ptr<double>(), T.amp.data_ptr<double>(),
+            T.sig2.data_ptr<double>(), as<NodeAgg>(T.agg), flags.data_ptr<int>());
+  NS_LAUNCH_CHECK();
+  T.herm_p = at::empty({ni}, i32);
+  T.herm_err = at::empty({ni}, dbl);
+  at::Tensor sq = at::zeros({ni + 1}, i64);  // p^2 per node, one trailing zero: the scan's last entry is the total
+  NS_LAUNCH(choose_expansion_kernel, blocks_for(ni, kThreads), kThreads, stream, ni, as<InternalNode>(T.nodes),
+            as<NodeAgg>(T.agg), tol, order, T.herm_p.data_ptr<int>(), T.herm_err.data_ptr<double>(),
+            sq.data_ptr<int64_t>());
+  NS_LAUNCH_CHECK();
+
+  // 5. coefficient offsets: exclusive scan of p^2.
+  T.herm_off = at::empty({ni + 1}, i64);
+  exclusive_sum(sq.data_ptr<int64_t>(), T.herm_off.data_ptr<int64_t>(), ni + 1, dev, stream);
+  const int64_t total = T.herm_off[ni].item<int64_t>();  // synchronises
+
+  // 6. expansion coefficients.
+  T.herm_coef = at::zeros({std::max<int64_t>(total, 1)}, dbl);
+  NS_LAUNCH(coefficients_kernel, blocks_for(ni, kThreads), kThreads, stream, ni, as<InternalNode>(T.nodes),
+            as<NodeAgg>(T.agg), T.herm_p.data_ptr<int>(), T.herm_off.data_ptr<int64_t>(), T.mu.data_ptr<double>(),
+            T.amp.data_ptr<double>(), T.herm_coef.data_ptr<double>());
+  NS_LAUNCH_CHECK();
+}
+
+// Device-side copy of the projected-splat base pointers of all cameras ([B, N, ...] layouts).
+template <typename S>
+struct SplatsBase {
+  const S *mu, *con, *amp, *nrm, *off, *zc;
+  int64_t N;
+
+  __host__ __device__ SplatsView<S> camera(int64_t b) const {
+    SplatsView<S> v;
+    v.mu = mu + b * N * 2;
+    v.con = con + b * N * 3;
+    v.amp = amp + b * N;
+    v.nrm = nrm + b * N * 3;
+    v.off = off + b * N;
+    v.zc = zc + b * N;
+    return v;
+  }
+};
+
+template <typename S>
+SplatsBase<S> splats_base(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
+                          const at::Tensor& off, const at::Tensor& zc) {
+  return SplatsBase<S>{mu.data_ptr<S>(), con.data_ptr<S>(), amp.data_ptr<S>(), nrm.data_ptr<S>(),
+                       off.data_ptr<S>(), zc.data_ptr<S>(), amp.size(1)};
+}
+
+// ---------------------------------------------------------------------------------------------------------
+// Per-pixel kernels.
+
+// Sampling of camera b: the CPU loop body, one thread per pixel; `key` is a pixels x m double scratch.
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t P, int m,
+                  double log_eps, uint64_t seed, int64_t b, double* __restrict__ key_scratch, int* __restrict__ idx_b,
+                  S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
+  NS_GRID_STRIDE(p, P) {
+    const double u = static_cast<double>(p % width) + 0.5, v = static_cast<double>(p / width) + 0.5;
+    const uint64_t stream = pixel_stream(seed, b, p);
+    int cnt = 0;
+    int* idx = idx_b + p * m;
+    double* key = key_scratch + p * m;
+    const PixelStats st = traverse_pixel(tv, u, v, stream, m, log_eps, key, idx, &cnt);
+    const Ray ray = pixel_ray(K, u, v);
+    finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.exhaustive && st.evaluated == cnt, key, idx, prob_b + p * m);
+    total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
+    work_b[p] = st.evaluated;
+  }
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    composite_forward_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const S* __restrict__ feat, int C,
+                             const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
+                             int m, int64_t W, int64_t P, int64_t BP, int mode, S* __restrict__ image,
+                             S* __restrict__ alpha, S* __restrict__ depth) {
+  NS_GRID_STRIDE(o, BP) {
+    const int64_t b = o / P, p = o % P;
+    const double u = static_cast<double>(p % W) + 0.5, v = static_cast<double>(p / W) + 0.5;
+    const Ray ray = pixel_ray(Kd + b * 9, u, v);
+    composite_pixel(base.camera(b), feat, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray, mode,
+                    image + o * C, alpha + o, depth + o);
+  }
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    backward_pixels_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const S* __restrict__ feat, int C,
+                           const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
+                           int m, int64_t W, int64_t P, int64_t BP, int mode, int estimator,
+                           const S* __restrict__ g_img, const S* __restrict__ g_alpha, const S* __restrict__ g_depth,
+                           S* __restrict__ dalpha, S* __restrict__ wf, S* __restrict__ bgw) {
+  NS_GRID_STRIDE(o, BP) {
+    const int64_t b = o / P, p = o % P;
+    const double u = static_cast<double>(p % W) + 0.5, v = static_cast<double>(p / W) + 0.5;
+    const Ray ray = pixel_ray(Kd + b * 9, u, v);
+    bgw[o] = composite_backward_pixel(base.camera(b), feat, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray,
+                                      mode, estimator, g_img + o * C, g_alpha[o], g_depth[o], dalpha + o * m,
+                                      wf + o * m);
+  }
+}
+
+// Output pointers of pass 2.
+template <typename S>
+struct PointGrads {
+  S *mu, *con, *amp, *nrm, *off, *zc, *feat;
+};
+
+// Pass 2: one thread per point k over its entries (flat slot ids sorted by (point, camera), segment
+// seg[k]..seg[k+1]); per camera segment the CPU loop body, with the feature gradient accumulated in
+// register chunks of kFeatChunk channels (same summation order per channel as the CPU).
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    backward_points_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const int64_t* __restrict__ ent,
+                           const int64_t* __restrict__ sg, const S* __restrict__ da, const S* __restrict__ w,
+                           const S* __restrict__ gi, const S* __restrict__ gd, int64_t m, int64_t C, int64_t width,
+                           int64_t P, bool paper, PointGrads<S> out) {
+  const int64_t N = base.N, Pm = P * m;
+  NS_GRID_STRIDE(k, N) {
+    int64_t e = sg[k];
+    const int64_t end = sg[k + 1];
+    while (e < end) {
+      const int64_t b = ent[e] / Pm;
+      const SplatsView<S> sv = base.camera(b);
+      const double* K = Kd + b * 9;
+      S a_mu[2] = {0, 0}, a_con[3] = {0, 0, 0}, a_amp = 0, a_nrm[3] = {0, 0, 0}, a_off = 0, a_zc = 0;
+      S gf[kFeatChunk];
+#pragma unroll
+      for (int c = 0; c < kFeatChunk; ++c) gf[c] = S(0);
+      const int64_t e0 = e;
+      int64_t count = 0;
+      for (; e < end && ent[e] / Pm == b; ++e, ++count) {
+        const int64_t flat = ent[e];
+        const int64_t pix = (flat / m) % P;
+        const int64_t o = b * P + pix;
+        const double u = static_cast<double>(pix % width) + 0.5, v = static_cast<double>(pix / width) + 0.5;
+        const Ray ray = pixel_ray(K, u, v);
+#pragma unroll
+        for (int c = 0; c < kFeatChunk; ++c)
+          if (c < C) gf[c] += w[flat] * gi[o * C + c];
+        splat_grad_entry(sv, static_cast<int>(k), S(u), S(v), ray, da[flat], w[flat] * gd[o], a_mu, a_con, &a_amp,
+                         a_nrm, &a_off, &a_zc);
+      }
+      const int64_t e1 = e;
+      const S scale = paper ? S(1) / S(count) : S(1);
+      const int64_t bk = b * N + k;
+      for (int c = 0; c < 2; ++c) out.mu[bk * 2 + c] = a_mu[c] * scale;
+      for (int c = 0; c < 3; ++c) out.con[bk * 3 + c] = a_con[c] * scale;
+      for (int c = 0; c < 3; ++c) out.nrm[bk * 3 + c] = a_nrm[c] * scale;
+      out.amp[bk] = a_amp * scale;
+      out.off[bk] = a_off * scale;
+      out.zc[bk] = a_zc * scale;
+#pragma unroll
+      for (int c = 0; c < kFeatChunk; ++c)
+        if (c < C) out.feat[k * C + c] += gf[c] * scale;
+      // Remaining channels, kFeatChunk at a time, over the same entries.
+      for (int64_t c0 = kFeatChunk; c0 < C; c0 += kFeatChunk) {
+#pragma unroll
+        for (int c = 0; c < kFeatChunk; ++c) gf[c] = S(0);
+        for (int64_t f = e0; f < e1; ++f) {
+          const int64_t flat = ent[f];
+          const int64_t o = b * P + (flat / m) % P;
+#pragma unroll
+          for (int c = 0; c < kFeatChunk; ++c)
+            if (c0 + c < C) gf[c] += w[flat] * gi[o * C + c0 + c];
+        }
+#pragma unroll
+        for (int c = 0; c < kFeatChunk; ++c)
+          if (c0 + c < C) out.feat[k * C + c0 + c] += gf[c] * scale;
+      }
+    }
+  }
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------------
+// Entry points (argument checks in bindings.cpp).
+
+std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
+                                    const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
+                                    const at::Tensor& zc, const at::Tensor& Ks, int64_t width, int64_t height,
+                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol) {
+  const DeviceGuard guard(mu.device());
+  const Stream stream = current_stream();
+  const int64_t B = amp.size(0), N = amp.size(1), P = width * height, m = samples;
+  auto opts = mu.options();
+  at::Tensor indices = at::empty({B, height, width, samples}, opts.dtype(at::kInt));
+  at::Tensor probs = at::empty({B, height, width, samples}, opts);
+  at::Tensor total = at::empty({B, height, width, 1}, opts);
+  at::Tensor work = at::empty({B, height, width, 1}, opts.dtype(at::kInt));
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  if (P == 0 || B == 0) return {indices, probs, total, work};
+  at::Tensor key_scratch = at::empty({P * m}, opts.dtype(at::kDouble));  // reused by every camera
+  const double log_eps = std::log(eps);
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
+    using S = scalar_t;
+    const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
+    for (int64_t b = 0; b < B; ++b) {
+      CudaTree tree;
+      build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
+                    sig2.data_ptr<S>() + b * N, N, static_cast<int>(order), tol, opts, stream);
+      NS_LAUNCH(sample_kernel<S>, blocks_for(P, kPixelThreads), kPixelThreads, stream,
+          tree.view(), base.camera(b), Kd.data_ptr<double>() + b * 9, width, P, static_cast<int>(m), log_eps,
+          static_cast<uint64_t>(seed), b, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
+          probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
+      NS_LAUNCH_CHECK();
+      // The tree's tensors go back to the caching allocator here, in stream order.
+    }
+  });
+  return {indices, probs, total, work};
+}
+
+std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
+                                               const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc,
+                                               const at::Tensor& Ks, const at::Tensor& feat, const at::Tensor& bg,
+                                               const at::Tensor& indices, const at::Tensor& probs, int64_t mode) {
+  const DeviceGuard guard(mu.device());
+  const Stream stream = current_stream();
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
+  const int64_t C = feat.size(1), P = H * W;
+  auto opts = mu.options();
+  at::Tensor image = at::empty({B, H, W, C}, opts);
+  at::Tensor alpha = at::empty({B, H, W, 1}, opts);
+  at::Tensor depth = at::empty({B, H, W, 1}, opts);
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  if (B * P == 0) return {image, alpha, depth};
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_forward_cuda", [&] {
+    using S = scalar_t;
+    NS_LAUNCH(composite_forward_kernel<S>, blocks_for(B * P, kPixelThreads), kPixelThreads, stream,
+        splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), feat.data_ptr<S>(), static_cast<int>(C),
+        bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
+        static_cast<int>(mode), image.data_ptr<S>(), alpha.data_ptr<S>(), depth.data_ptr<S>());
+    NS_LAUNCH_CHECK();
+  });
+  return {image, alpha, depth};
+}
+
+std::vector<at::Tensor> composite_backward_pixels_cuda(const at::Tensor& mu, const at::Tensor& con,
+                                                       const at::Tensor& amp, const at::Tensor& nrm,
+                                                       const at::Tensor& off, const at::Tensor& zc,
+                                                       const at::Tensor& Ks, const at::Tensor& feat,
+                                                       const at::Tensor& bg, const at::Tensor& indices,
+                                                       const at::Tensor& probs, int64_t mode, int64_t estimator,
+                                                       const at::Tensor& g_img, const at::Tensor& g_alpha,
+                                                       const at::Tensor& g_depth) {
+  const DeviceGuard guard(mu.device());
+  const Stream stream = current_stream();
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
+  const int64_t C = feat.size(1), P = H * W;
+  auto opts = mu.options();
+  at::Tensor dalpha = at::zeros({B, H, W, m}, opts);
+  at::Tensor wf = at::zeros({B, H, W, m}, opts);
+  at::Tensor bgw = at::empty({B, H, W, 1}, opts);
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  if (B * P == 0) return {dalpha, wf, bgw};
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_pixels_cuda", [&] {
+    using S = scalar_t;
+    NS_LAUNCH(backward_pixels_kernel<S>, blocks_for(B * P, kPixelThreads), kPixelThreads, stream,
+        splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), feat.data_ptr<S>(), static_cast<int>(C),
+        bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
+        static_cast<int>(mode), static_cast<int>(estimator), g_img.data_ptr<S>(), g_alpha.data_ptr<S>(),
+        g_depth.data_ptr<S>(), dalpha.data_ptr<S>(), wf.data_ptr<S>(), bgw.data_ptr<S>());
+    NS_LAUNCH_CHECK();
+  });
+  return {dalpha, wf, bgw};
+}
+
+std::vector<at::Tensor> composite_backward_points_cuda(const at::Tensor& mu, const at::Tensor& con,
+                                                       const at::Tensor& amp, const at::Tensor& nrm,
+                                                       const at::Tensor& off, const at::Tensor& zc,
+                                                       const at::Tensor& Ks, const at::Tensor& entries,
+                                                       const at::Tensor& seg, const at::Tensor& dalpha,
+                                                       const at::Tensor& wf, const at::Tensor& g_img,
+                                                       const at::Tensor& g_depth, int64_t width, int64_t height,
+                                                       int64_t estimator) {
+  const DeviceGuard guard(mu.device());
+  const Stream stream = current_stream();
+  const int64_t B = amp.size(0), N = amp.size(1), C = g_img.size(3), m = dalpha.size(3), P = width * height;
+  auto opts = mu.options();
+  std::vector<at::Tensor> out = {at::zeros({B, N, 2}, opts), at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),
+                                 at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),    at::zeros({B, N}, opts),
+                                 at::zeros({N, C}, opts)};
+  at::Tensor Kd = Ks.to(at::kDouble).contiguous();
+  if (N == 0 || entries.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_points_cuda", [&] {
+    using S = scalar_t;
+    PointGrads<S> g{out[0].data_ptr<S>(), out[1].data_ptr<S>(), out[2].data_ptr<S>(), out[3].data_ptr<S>(),
+                    out[4].data_ptr<S>(), out[5].data_ptr<S>(), out[6].data_ptr<S>()};
+    NS_LAUNCH(backward_points_kernel<S>, blocks_for(N, kPixelThreads), kPixelThreads, stream,
+        splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), entries.data_ptr<int64_t>(),
+        seg.data_ptr<int64_t>(), dalpha.data_ptr<S>(), wf.data_ptr<S>(), g_img.data_ptr<S>(), g_depth.data_ptr<S>(),
+        m, C, width, P, estimator == kPaper, g);
+    NS_LAUNCH_CHECK();
+  });
+  return out;
+}
+
+}  // namespace nsplat

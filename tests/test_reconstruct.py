@@ -1,0 +1,203 @@
+"""Shape reconstruction: shading, the truncated baseline, repositioning, resume, and a tiny
+reconstruction with the sampled op that must reduce the Chamfer distance by a clear factor."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from nsplat.cameras import intrinsics_from_fov, look_at
+from nsplat.config import ConfigError, load_config
+from nsplat.metrics import point_cloud_distances
+from nsplat.ops import splat_dense
+from nsplat.reconstruct import FitConfig, RenderConfig, fit, point_contributions, render_views, reposition
+from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
+from nsplat.shading import lambert
+from nsplat.tasks import get_task
+from nsplat.tasks.reconstruct import Config, fibonacci_sphere
+from nsplat.truncated import splat_truncated
+
+
+def _cameras(count: int, res: int, dist: float = 3.0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    d = torch.nn.functional.normalize(torch.randn(count, 3, generator=g), dim=-1)
+    vm = look_at(dist * d, torch.zeros(count, 3), torch.tensor([0.0, 0.0, 1.0]))
+    return vm, intrinsics_from_fov(math.radians(45), res, res, count)
+
+
+def _ellipsoid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    axes = torch.tensor([0.9, 0.55, 0.35])
+    p, nrm = fibonacci_sphere(n, torch.zeros(3), 1.0)
+    return p * axes, torch.nn.functional.normalize(nrm / axes, dim=-1)
+
+
+# ------------------------------------------------------------------------------------------ shading
+def test_lambert_paper_lights_hand_values():
+    albedo = torch.tensor([[1.0, 1.0, 1.0], [0.5, 1.0, 0.2], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    s = 1.0 / math.sqrt(2.0)
+    # Camera-space normals (identity camera): towards the camera, up (-y), up-and-towards, away.
+    normals = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [0.0, -s, -s], [0.0, 0.0, 1.0]])
+    out = lambert(albedo, normals, torch.eye(4)[None])
+    expected = torch.tensor([[0.9, 0.0, 0.0], [0.0, 0.0, 0.2 * 0.9], [0.9 * s, 0.9 * s, 0.0], [0.0, 0.0, 0.0]])
+    assert torch.allclose(out[0], expected, atol=1e-6)
+
+
+def test_lambert_lights_follow_the_camera():
+    # Rotating the camera and the normal together leaves the shading unchanged.
+    vm = look_at(torch.tensor([[2.0, 1.0, 0.5]]), torch.zeros(1, 3), torch.tensor([0.0, 0.0, 1.0]))
+    n_cam = torch.nn.functional.normalize(torch.tensor([[0.3, -0.5, -0.8]]), dim=-1)
+    n_world = n_cam @ vm[0, :3, :3]  # R^T n_cam
+    a = lambert(torch.ones(1, 3), n_world, vm)
+    b = lambert(torch.ones(1, 3), n_cam, torch.eye(4)[None])
+    assert torch.allclose(a, b, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ truncated
+def _small_scene(n: int = 60, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.4
+    normals = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    normals = torch.where(normals[:, 2:] > 0, -normals, normals)
+    scales = torch.rand(n, 2, generator=g, dtype=torch.float64) * 0.08 + 0.03
+    opac = torch.rand(n, generator=g, dtype=torch.float64) * 0.8 + 0.1
+    feats = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    vm = torch.eye(4, dtype=torch.float64)[None].repeat(2, 1, 1)
+    vm[:, 2, 3] = 3.0
+    vm[1, 0, 3] = 0.3
+    Ks = intrinsics_from_fov(math.radians(40), 20, 16, 2, dtype=torch.float64)
+    return means, normals, scales, opac, feats, vm, Ks
+
+
+def test_truncated_equals_dense_without_truncation():
+    args = _small_scene()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    d = splat_dense(*args, 20, 16, background=bg)
+    for tile in (4, 7):
+        t = splat_truncated(*args, 20, 16, cutoff=50.0, background=bg, tile=tile)
+        assert torch.allclose(t.image, d.image, atol=1e-10)
+        assert torch.allclose(t.alpha, d.alpha, atol=1e-10)
+        assert torch.allclose(t.depth, d.depth, atol=1e-10)
+
+
+def test_truncated_cuts_kernels_and_gradients_are_local():
+    means, normals, scales, opac, feats, vm, Ks = _small_scene()
+    # Point 0: a small splat far outside the image; point 1: large, in view.
+    means = means.clone()
+    means[0] = torch.tensor([3.0, 0.0, 0.0], dtype=torch.float64)
+    means.requires_grad_(True)
+    args = (means, normals, scales, opac, feats, vm[:1], Ks[:1], 20, 16)
+    t3 = splat_truncated(*args, cutoff=3.0)
+    t3.image.sum().backward()
+    g_trunc = means.grad.clone()
+    means.grad = None
+    splat_dense(*args).image.sum().backward()
+    assert g_trunc[0].abs().sum() == 0            # no pixel within 3σ: no gradient
+    assert means.grad[0].abs().sum() > 0          # the dense renderer still has a (tiny) one
+    assert g_trunc[1:].abs().sum() > 0
+    # And the cut changes the image: truncated ≠ dense at 3σ but close.
+    d = splat_dense(*(a.detach() if isinstance(a, torch.Tensor) else a for a in args))
+    diff = (t3.image.detach() - d.image).abs().max()
+    assert 0 < diff < 0.1
+
+
+# ------------------------------------------------------------------------------ repositioning
+def test_non_contributing_points_are_moved_next_to_visible_ones():
+    means, normals = _ellipsoid(600)
+    # Two extra points: one hidden inside the closed surface, one far outside every view.
+    means = torch.cat([means, torch.tensor([[0.0, 0.0, 0.0], [50.0, 50.0, 50.0]])])
+    normals = torch.cat([normals, torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])])
+    spacing = torch.as_tensor(knn_spacing(means[:600]), dtype=torch.float32)
+    scales = torch.cat([1.5 * spacing, torch.tensor([0.05, 0.05])])[:, None].expand(602, 2)
+    scene = SurfelScene.from_points(SceneConfig(), means, normals, scales=scales)
+    opt = torch.optim.Adam(scene.param_groups({"default": 0.01}))
+    scene.means.sum().backward()
+    opt.step()
+    vm, Ks = _cameras(6, 24)
+    contrib = point_contributions(scene, vm, Ks, 24, 24, RenderConfig(renderer="dense"))
+    assert contrib[600] < 0.02 and contrib[601] < 0.02
+    assert (contrib[:600] > 0.02).float().mean() > 0.4
+    g = torch.Generator().manual_seed(0)
+    moved = reposition(scene, contrib, 0.02, 1.0, g, opt)
+    assert moved >= 2
+    dist_to_surface = torch.cdist(scene.means[600:].detach(), means[:600]).min(dim=1).values
+    assert bool((dist_to_surface < 0.3).all())
+    assert bool((opt.state[scene.tensor("means")]["exp_avg"][600:] == 0).all())
+
+
+def test_black_points_have_no_visual_contribution():
+    # Two surfels facing an identity camera; the second is black (albedo 0).
+    means = torch.tensor([[-0.5, 0.0, 3.0], [0.5, 0.0, 3.0]])
+    normals = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    scene = SurfelScene.from_points(SceneConfig(), means, normals, scales=0.05,
+                                    features=torch.tensor([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0]]))
+    vm, Ks = torch.eye(4)[None], intrinsics_from_fov(math.radians(40), 16, 16, 1)
+    cfg = RenderConfig(renderer="dense")
+    weight = point_contributions(scene, vm, Ks, 16, 16, cfg, measure="weight")
+    radiance = point_contributions(scene, vm, Ks, 16, 16, cfg, measure="radiance")
+    assert weight[0] > 0.5 and torch.allclose(weight[0], weight[1], rtol=1e-4)
+    # Headlight only (normal faces the camera): colour norm of point 0 is 0.9 * 0.5.
+    assert torch.allclose(radiance[0], 0.45 * weight[0], rtol=1e-4)
+    assert radiance[1] == 0
+
+
+# ------------------------------------------------------------------------------------- fitting
+def _tiny_problem(n: int = 300, views: int = 8, res: int = 24):
+    gt_pts, gt_n = _ellipsoid(n)
+    gt = SurfelScene.from_points(SceneConfig(), gt_pts, gt_n, features=1.0)
+    vm, Ks = _cameras(views, res)
+    with torch.no_grad():
+        images = render_views(gt, vm, Ks, res, res, RenderConfig(renderer="dense"))
+    s0, n0 = fibonacci_sphere(n, torch.zeros(3), 1.05)
+    return gt_pts, images, vm, Ks, SurfelScene.from_points(SceneConfig(), s0, n0, features=0.5)
+
+
+def test_tiny_reconstruction_with_sampled_op_reduces_chamfer(tmp_path):
+    gt_pts, images, vm, Ks, scene = _tiny_problem()
+    before = point_cloud_distances(scene.means, gt_pts)
+    cfg = FitConfig(epochs=30, batch=4, lr=0.03, checkpoint_every=100)
+    fit(scene, images, vm, Ks, cfg, RenderConfig(renderer="splat", samples=40, eps=0.01), tmp_path, progress=False)
+    after = point_cloud_distances(scene.means, gt_pts)
+    assert after["chamfer"] < before["chamfer"] / 2.0, (before, after)
+    assert after["chamfer_sq"] < before["chamfer_sq"] / 4.0, (before, after)
+    assert (tmp_path / "tb").is_dir() and (tmp_path / "checkpoints" / "latest").is_file()
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def test_fit_resumes_exactly(tmp_path):
+    cfg = FitConfig(epochs=3, batch=4, lr=0.03, reposition_every=1, min_weight=0.5)
+    rcfg = RenderConfig(renderer="splat")
+    _, images, vm, Ks, straight = _tiny_problem(n=120, views=6, res=16)
+    fit(straight, images, vm, Ks, cfg, rcfg, tmp_path / "a", seed=3, progress=False)
+
+    def stop_at_last(epoch: int, scene: SurfelScene, writer) -> dict[str, float]:
+        if epoch == 2:  # killed during the last epoch, before its checkpoint
+            raise _Interrupt
+        return {}
+
+    _, _, _, _, killed = _tiny_problem(n=120, views=6, res=16)
+    with pytest.raises(_Interrupt):
+        fit(killed, images, vm, Ks, cfg, rcfg, tmp_path / "b", seed=3, progress=False, on_epoch=stop_at_last)
+    torch.manual_seed(999)  # a new process: global RNG state differs
+    _, _, _, _, resumed = _tiny_problem(n=120, views=6, res=16)
+    fit(resumed, images, vm, Ks, cfg, rcfg, tmp_path / "b", seed=3, resume=True, progress=False)
+    for name, t in straight.state_dict().items():
+        assert torch.equal(t, resumed.state_dict()[name]), name
+    assert not torch.equal(straight.means, _tiny_problem(n=120, views=6, res=16)[4].means)
+
+
+# ---------------------------------------------------------------------------------------- task
+def test_task_registered_and_config_errors_name_the_key():
+    task = get_task("reconstruct")
+    assert task.Config is Config
+    base = {"task": "reconstruct"}
+    cfg = load_config(Config, base, ["data.views=16", "render.renderer=truncated"])
+    assert cfg.data.views == 16 and cfg.render.renderer == "truncated"
+    for override, key in [("data.shape=dragon", "data.shape"), ("render.renderer=fast", "render.renderer"),
+                          ("optim.colour=1", "optim.colour"), ("scene.channels=4", "scene.channels"),
+                          ("render.estimator=biased", "render.estimator"), ("data.views=0", "data.views")]:
+        with pytest.raises(ConfigError, match=key):
+            load_config(Config, base, [override])
