@@ -214,15 +214,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.tiny:
         n_sweep, res_sweep, m_sweep = [1_000, 3_000], [(48, 48), (96, 64)], [1, 4]
-        mid_n, cpu_case, gs_sizes = 2_000, (1_000, 32, 32, 4), [1_000]
+        mid_n, cpu_case, gs_sizes, base = 2_000, (1_000, 32, 32, 4), [1_000], (64, 64)
     elif args.quick:
         n_sweep, res_sweep, m_sweep = [10_000, 100_000], [(256, 256), (512, 512)], [1, 16]
-        mid_n, cpu_case, gs_sizes = 100_000, (10_000, 128, 128, 8), [100_000]
+        mid_n, cpu_case, gs_sizes, base = 100_000, (10_000, 128, 128, 8), [100_000], (512, 512)
     else:
         n_sweep = [10_000, 30_000, 100_000, 300_000, 1_000_000, 2_000_000, 4_000_000]
         res_sweep = [(256, 256), (512, 512), (1024, 1024), (1920, 1080)]
         m_sweep = [1, 4, 16, 64]
-        mid_n, cpu_case, gs_sizes = 1_000_000, (30_000, 256, 256, 16), [100_000, 1_000_000, 4_000_000]
+        mid_n, cpu_case, gs_sizes, base = 1_000_000, (30_000, 256, 256, 16), [100_000, 1_000_000, 4_000_000], (512, 512)
 
     result: dict = dict(
         command="python benchmarks/op_cuda.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip(),
@@ -239,9 +239,9 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
         return row
 
-    result["vs_N"] = [run("N", N, 512, 512, 16) for N in n_sweep]
+    result["vs_N"] = [run("N", N, *base, 16) for N in n_sweep]
     result["vs_resolution"] = [run("res", mid_n, W, H, 16) for W, H in res_sweep]
-    result["vs_samples"] = [run("m", mid_n, 512, 512, m) for m in m_sweep]
+    result["vs_samples"] = [run("m", mid_n, *base, m) for m in m_sweep]
     result["slopes"] = dict(
         time_vs_N=loglog_slope([r["N"] for r in result["vs_N"]], [r["total_ms"] for r in result["vs_N"]]),
         time_vs_pixels=loglog_slope([r["pixels"] for r in result["vs_resolution"]],
@@ -269,10 +269,10 @@ def main(argv: list[str] | None = None) -> int:
             t = time.perf_counter()
             gs["rows"] = []
             for N in gs_sizes:
-                g_row = measure_gsplat(N, 512, 512, device, args.reps)
+                g_row = measure_gsplat(N, *base, device, args.reps)
                 if not gs["rows"]:
                     g_row["first_call_s_including_jit"] = time.perf_counter() - t
-                ours = next((r for r in result["vs_N"] if r["N"] == N), None) or run("gs-ref", N, 512, 512, 16)
+                ours = next((r for r in result["vs_N"] if r["N"] == N), None) or run("gs-ref", N, *base, 16)
                 g_row["nsplat_total_ms_m16"] = ours["total_ms"]
                 g_row["nsplat_over_gsplat"] = ours["total_ms"] / g_row["total_ms"]
                 gs["rows"].append(g_row)
@@ -311,8 +311,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{c['case']['width']}x{c['case']['height']}, m={c['case']['samples']}: "
           f"{c['cpu']['total_ms']:.1f} ms vs {c['device']['total_ms']:.1f} ms fwd+bwd (x{c['speedup_total']:.1f})")
     if gs.get("rows"):
-        print("\n### gsplat 2DGS, 512², same surfels\n")
-        print(table(gs["rows"], [("N", "N", ","), ("fwd_ms", "gsplat fwd ms", ".1f"), ("bwd_ms", "gsplat bwd ms", ".1f"),
+        print(f"\n### gsplat 2DGS, {base[0]}x{base[1]}, same surfels\n")
+        print(table(gs["rows"], [("N", "N", ","), ("fwd_ms", "gsplat fwd ms", ".1f"),
+                                 ("bwd_ms", "gsplat bwd ms", ".1f"),
                                  ("total_ms", "gsplat fwd+bwd ms", ".1f"), ("peak_extra_MB", "gsplat peak MB", ".0f"),
                                  ("nsplat_total_ms_m16", "nsplat fwd+bwd ms (m=16)", ".1f"),
                                  ("nsplat_over_gsplat", "nsplat / gsplat", ".2f")]))

@@ -6,6 +6,11 @@ prints a table, writes ``benchmarks/results/refine_room.json`` and before/after 
 ``docs/images/refine/``.
 
     OMP_NUM_THREADS=2 python benchmarks/refine_room.py [--steps 150] [--width 64 --height 48]
+        [--estimators ht sampled] [--set key=value ...]
+
+``--set`` passes further config overrides to both runs (the same budget for every estimator). Runs of
+estimators not named this time are kept in the JSON when its arguments match (so the estimators can
+be run in separate invocations, e.g. in parallel).
 """
 from __future__ import annotations
 
@@ -30,7 +35,7 @@ def run_one(estimator: str, args: argparse.Namespace) -> dict:
                  f"data.room.width={args.width}", f"data.room.height={args.height}",
                  f"data.room.frames={args.frames}", f"optim.decay_every={args.steps // 3}",
                  f"filter.start={args.steps // 5}", f"filter.every={args.steps // 3}",
-                 f"log.checkpoint_every={args.steps}"]
+                 f"log.checkpoint_every={args.steps}", *args.set]
     cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(ROOT / "configs" / "refine_room.yaml"),
            "--run", str(run_dir), "--device", "cpu", *overrides]
     subprocess.run(cmd, check=True, cwd=ROOT)
@@ -62,13 +67,22 @@ def main() -> None:
     p.add_argument("--height", type=int, default=48)
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--estimators", nargs="+", default=["ht", "sampled"])
+    p.add_argument("--set", nargs="*", default=[], help="extra config overrides for every run")
     args = p.parse_args()
-    out = {"args": vars(args), "runs": {}}
+    path = RESULTS / "refine_room.json"
+    key = {k: v for k, v in vars(args).items() if k != "estimators"}
+    out = {"args": key, "runs": {}}
+    results = {}
     for est in args.estimators:
-        out["runs"][est] = run_one(est, args)
-        save_images(ROOT / out["runs"][est]["run_dir"], est, [0, args.frames // 2])
+        results[est] = run_one(est, args)
+        save_images(ROOT / results[est]["run_dir"], est, [0, args.frames // 2])
+    if path.is_file():  # re-read now: another invocation may have written meanwhile
+        old = json.loads(path.read_text())
+        if old.get("args") == key:
+            out["runs"].update(old.get("runs", {}))
+    out["runs"].update(results)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "refine_room.json").write_text(json.dumps(out, indent=1))
+    path.write_text(json.dumps(out, indent=1))
     hdr = f"{'estimator':>9} | {'rot° before':>11} {'after':>7} {'÷':>5} | {'trans before':>12} {'after':>7} {'÷':>5} | " \
           f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}"
     print(hdr)

@@ -11,8 +11,9 @@ interrupted one resumes from its checkpoint). Methods, all with the same data, i
 
 Settings (``--setting``): ``cpu`` (default; a budget that runs on 2 CPU cores, see docs/results.md)
 or ``paper`` (124 views, 300 epochs, batch 12, lr 0.01, repositioning every epoch; for a big machine).
-Prints a Markdown table and writes ``benchmarks/results/table1.json``; copies the first held-out
-render of each run to ``docs/images/reconstruct/``.
+Prints a Markdown table and writes ``benchmarks/results/table1-<setting>.json``; copies the first
+held-out render (GT | reconstruction, upscaled with nearest neighbour) and the point-cloud plot of each
+run to ``docs/images/reconstruct/``.
 
     python benchmarks/table1.py --jobs 2
     python benchmarks/table1.py --setting paper --jobs 16 --device cuda
@@ -28,6 +29,9 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
@@ -48,7 +52,7 @@ PAPER_TABLE1 = {
 }
 #: Budgets. ``cpu``: what we run on the 2-core development machine; ``paper``: §4 of the paper.
 SETTINGS = {
-    "cpu": ["data.width=32", "data.height=32", "data.views=24", "optim.epochs=20", "optim.batch=6",
+    "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
             "optim.lr=0.03", "optim.reposition_every=5", "eval_every=5"],
     "paper": ["data.width=256", "data.height=256", "data.views=124", "optim.epochs=300", "optim.batch=12",
               "optim.lr=0.01", "optim.reposition_every=1", "eval_every=10"],
@@ -56,10 +60,13 @@ SETTINGS = {
 
 
 def run_one(name: str, shape: str, overrides: list[str], table: str, device: str | None, seed: int,
-            threads: int) -> dict:
-    """Run (or reuse) one reconstruction; returns its ``metrics.json`` plus ``name``/``wall_s``."""
+            threads: int, collect_only: bool = False) -> dict | None:
+    """Run (or reuse) one reconstruction; returns its ``metrics.json`` plus ``name``/``wall_s``
+    (``None`` with ``collect_only`` when the run has not finished)."""
     run_dir = REPO / "runs" / "bench" / table / name
     metrics = run_dir / "metrics.json"
+    if not metrics.is_file() and collect_only:
+        return None
     if not metrics.is_file():
         cmd = [sys.executable, str(REPO / "train.py"), "--config", str(REPO / "configs" / f"reconstruct_{shape}.yaml"),
                "--run", str(run_dir), "--seed", str(seed)]
@@ -77,10 +84,15 @@ def run_one(name: str, shape: str, overrides: list[str], table: str, device: str
         wall = float("nan")
     out = json.loads(metrics.read_text())
     out.update(name=name, wall_s=out.get("fit_seconds", wall))
-    render = run_dir / "renders" / "view_0.png"
-    if render.is_file():
-        IMAGES.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(render, IMAGES / f"{table}-{name}.png")
+    renders = run_dir / "renders"
+    if not (renders / "points.png").is_file():  # runs finished before the point plot existed
+        subprocess.run([sys.executable, str(REPO / "train.py"), "render", "--run", str(run_dir)], check=True,
+                       env=dict(os.environ, OMP_NUM_THREADS=str(threads)), cwd=REPO, capture_output=True)
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    view = iio.imread(renders / "view_0.png")
+    scale = max(1, 256 // view.shape[0])
+    iio.imwrite(IMAGES / f"{table}-{name}.png", np.repeat(np.repeat(view, scale, 0), scale, 1))
+    shutil.copyfile(renders / "points.png", IMAGES / f"{table}-{name}-points.png")
     return out
 
 
@@ -107,10 +119,11 @@ def prepare_gt(jobs: list[tuple[str, str, list[str]]], args: argparse.Namespace)
 def run_all(jobs: list[tuple[str, str, list[str]]], table: str, args: argparse.Namespace) -> list[dict]:
     """Run ``(name, shape, overrides)`` jobs with ``args.jobs`` processes in parallel."""
     setting = SETTINGS[args.setting]
-    prepare_gt(jobs, args)
+    if not args.collect_only:
+        prepare_gt(jobs, args)
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, name, shape, setting + ov + list(args.override), f"{table}-{args.setting}",
-                               args.device, args.seed, args.threads) for name, shape, ov in jobs]
+                               args.device, args.seed, args.threads, args.collect_only) for name, shape, ov in jobs]
         return [f.result() for f in futures]
 
 
@@ -121,6 +134,8 @@ def common_args(description: str) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=1, help="OpenMP threads per run")
     p.add_argument("--device", default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--collect-only", action="store_true",
+                   help="start no runs: tabulate the finished ones (unfinished rows are marked 'not run')")
     p.add_argument("override", nargs="*", help="extra config overrides for every run (key=value)")
     return p.parse_args()
 
@@ -141,21 +156,26 @@ def fmt(x: float) -> str:
 def main() -> None:
     args = common_args(__doc__.splitlines()[0])
     jobs = [(f"{shape}-{method}", shape, ov) for shape in SHAPES for method, ov in METHODS.items()]
-    rows = run_all(jobs, "table1", args)
+    rows = [r for r in run_all(jobs, "table1", args) if r is not None]
     by = {r["name"]: r for r in rows}
     ratios = {}
     lines = ["| shape | method | HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | init CD | time s |",
              "|---|---|---|---|---|---|---|---|"]
     for shape in SHAPES:
         for method in METHODS:
-            r = by[f"{shape}-{method}"]
+            r = by.get(f"{shape}-{method}")
+            if r is None:
+                lines.append(f"| {shape} | {method} | not run | | | | | |")
+                continue
             lines.append(f"| {shape} | {method} | {fmt(r['hausdorff'])} | {fmt(r['chamfer'])} | "
                          f"{fmt(r['hausdorff_sq'])} | {fmt(r['chamfer_sq'])} | {fmt(r['init']['chamfer'])} | "
                          f"{r['wall_s']:.0f} |")
-        ht = by[f"{shape}-ht"]
+        ht = by.get(f"{shape}-ht")
+        if ht is None:
+            continue
         ratios[shape] = {m: {k: by[f"{shape}-{m}"][k] / ht[k] for k in ("hausdorff", "chamfer", "hausdorff_sq",
                                                                          "chamfer_sq")}
-                         for m in METHODS if m != "ht"}
+                         for m in METHODS if m != "ht" and f"{shape}-{m}" in by}
     lines += ["", "Ratio baseline / ht (> 1: ht better; target ≥ 2.8):", "",
               "| shape | baseline | HD | CD | HD² | CD² |", "|---|---|---|---|---|---|"]
     for shape, per in ratios.items():

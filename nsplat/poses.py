@@ -6,7 +6,19 @@ A camera ``i`` with initial world→camera matrix ``V_i`` (OpenCV convention, se
     V_i' = exp(ξ_i) · V_i,      ξ_i = (υ_i, ω_i) ∈ se(3)   (translation first, kornia's order)
 
 so ``ω_i`` rotates the camera about its own optical centre and ``υ_i`` translates the world in the
-camera's axes (the optical centre moves by ``−Rᵢ'ᵀ υ_i``); world units and radians. ``exp`` is kornia's
+camera's axes (the optical centre moves by ``−Rᵢ'ᵀ υ_i``); world units and radians.
+
+Optionally the rotation acts about a *pivot* ``c_i`` given in camera coordinates (e.g. the point
+at the scene's median depth on the optical axis)::
+
+    V_i' = T(c_i) · exp(ξ_i) · T(−c_i) · V_i        (T: pure translation)
+
+This only re-parametrises the same set of poses, but it conditions the problem: rotating the
+camera about its optical centre by ω shifts the image almost like translating it by ``ω × depth``
+(the two differ only through depth variation), so with a centre pivot the loss has a long, narrow
+valley along which ω and υ trade off, and Adam's per-coordinate scaling cannot follow it. About a
+pivot at the scene's depth, ω changes the viewing angle of the scene while υ shifts it: nearly
+decoupled directions, which diagonal preconditioning handles. ``exp`` is kornia's
 :class:`kornia.geometry.liegroup.Se3` exponential map; ξ starts at 0 (identity), so gradients from
 the renderer reach ξ through ``viewmats``. The optional focal correction multiplies ``fx, fy`` by
 ``exp(φ)`` (one ``φ`` per camera, or one shared by all), reaching ``Ks`` through the op's projection.
@@ -34,10 +46,12 @@ class CameraCorrection(torch.nn.Module):
         learn_focal: allocate log focal scales ``φ`` (``[B]``, or ``[1]`` if ``shared_focal``).
         shared_focal: one focal correction shared by all cameras (one physical lens).
         frozen: camera indices whose pose is kept fixed (e.g. an anchor frame fixing the gauge).
+        pivots: ``[B, 3]`` rotation pivots in camera coordinates (``None``: the optical centres).
     """
 
     def __init__(self, num_cameras: int, *, learn_pose: bool = True, learn_focal: bool = False,
-                 shared_focal: bool = True, frozen: list[int] | tuple[int, ...] = ()) -> None:
+                 shared_focal: bool = True, frozen: list[int] | tuple[int, ...] = (),
+                 pivots: torch.Tensor | None = None) -> None:
         super().__init__()
         if num_cameras < 1:
             raise ValueError(f"num_cameras must be >= 1, got {num_cameras}")
@@ -51,6 +65,10 @@ class CameraCorrection(torch.nn.Module):
         mask = torch.ones(num_cameras, 1)
         mask[list(frozen)] = 0.0
         self.register_buffer("pose_mask", mask, persistent=False)
+        if pivots is not None and tuple(pivots.shape) != (num_cameras, 3):
+            raise ValueError(f"pivots: expected shape [{num_cameras}, 3], got {list(pivots.shape)}")
+        self.register_buffer("pivots", None if pivots is None else pivots.detach().float().clone(),
+                             persistent=False)
 
     def delta(self, index: torch.Tensor | None = None) -> torch.Tensor:
         """Correction matrices ``exp(ξ) [b, 4, 4]`` of cameras ``index [b]`` (all if ``None``)."""
@@ -58,7 +76,16 @@ class CameraCorrection(torch.nn.Module):
         if self.twist is None:
             return torch.eye(4, device=idx.device).expand(idx.numel(), 4, 4)
         xi = self.twist[idx] * self.pose_mask[idx]
-        return Se3.exp(xi).matrix()
+        D = Se3.exp(xi).matrix()
+        if self.pivots is None:
+            return D
+        # T(c) · D · T(−c) = [R, t + c − R c]
+        c = self.pivots[idx].to(D)
+        R = D[:, :3, :3]
+        t = D[:, :3, 3] + c - (R @ c[..., None])[..., 0]
+        top = torch.cat([R, t[..., None]], -1)
+        bottom = D[:, 3:, :]
+        return torch.cat([top, bottom], 1)
 
     def forward(self, viewmats: torch.Tensor, Ks: torch.Tensor,
                 index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

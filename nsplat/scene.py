@@ -312,7 +312,10 @@ class SurfelScene(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"path: no PLY file at {path}")
-        vertex = PlyData.read(str(path))["vertex"]
+        try:
+            vertex = PlyData.read(str(path))["vertex"]
+        except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
+            raise ValueError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
         names = set(vertex.data.dtype.names)
 
         def cols(keys: list[str], what: str) -> torch.Tensor:

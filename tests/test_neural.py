@@ -69,7 +69,7 @@ def test_config_errors_name_the_key(cache):
 
 
 def test_training_lowers_the_loss(cache, tmp_path):
-    cfg = load_config(Config, _tiny(cache, gan={"enabled": False}, learn={"features": 0.05}))
+    cfg = load_config(Config, _tiny(cache, steps=30, lr=3e-3, gan={"enabled": False}, learn={"features": 0.05}))
     ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
     torch.manual_seed(0)
     train = load_views(cfg, "train", ctx.device)
@@ -82,14 +82,18 @@ def test_training_lowers_the_loss(cache, tmp_path):
         rgb, _ = render_split(tr.model, train, seed=123)
         return float((rgb - train.images).abs().mean())
 
+    # Residual shader with a zero head: stage 2 starts exactly from the splatted stage-1 colours.
+    rgb0, cond0 = render_split(tr.model, train, seed=123)
+    assert torch.allclose(rgb0, cond0[:, :3].permute(0, 2, 3, 1).clamp(1e-3, 1 - 1e-3), atol=1e-5)
+
     before = l1()
     losses = []
-    for _ in range(30):
+    for _ in range(cfg.neural.steps):
         losses.append(train_step(cfg, tr, train)["loss/l1"])
         tr.step += 1
     after = l1()
     assert all(math.isfinite(v) for v in losses)
-    assert after < 0.7 * before, (before, after)
+    assert after < 0.8 * before, (before, after)  # measured: 0.086 -> 0.058
 
 
 def _args(cfg_path: Path, run: Path, *extra: str) -> list[str]:
@@ -142,5 +146,5 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     assert any((full / "tb").iterdir()) and (full / "geometry.ply").is_file()
 
     assert main(["render", "--run", str(full)]) == 0
-    frames = list(imageio.get_reader(full / "orbit.mp4"))
+    frames = list(imageio.get_reader(full / "orbit.mp4").iter_data())
     assert len(frames) == 4 and frames[0].shape == (24, 24, 3)

@@ -22,19 +22,18 @@ import dataclasses
 import pytest
 import torch
 
+import nsplat.ops.functional as functional
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
+from nsplat.ops.build import CSRC, backend, build_dir, source_hash
 from tests.conftest import make_cameras, make_scene
 from tests.test_op_stability import CASES
-
-import nsplat.ops.functional as functional
-from nsplat.ops.build import CSRC, backend, build_dir
-
 
 
 def cuda_test(fn):
     """Marks a test that needs a CUDA device (skipped with the reason "no CUDA device" otherwise)."""
     fn = pytest.mark.cuda(fn)
     return pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")(fn)
+
 
 CUDA = torch.device("cuda")
 FWD_TOL, GRAD_TOL = 1e-6, 1e-5
@@ -275,6 +274,36 @@ def test_many_samples_and_channels_on_cuda():
 # 64-bit slot arithmetic
 
 
+def _check_large_m(device, W, H, m_big, with_backward):
+    """A 6-point scene covering the whole image rendered with m = 8 and with m = m_big: the sample, forward and
+    (optionally) backward must be equal, and slots 8.. of the large run empty."""
+    xs = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float32)
+    means = torch.stack([torch.stack([x, torch.tensor(y), torch.tensor(0.0)]) for x in xs for y in (-1.0, 1.0)])
+    normals = torch.tensor([[0.0, 0.0, -1.0]]).repeat(6, 1)
+    scales = torch.full((6, 2), 0.3)
+    opac = torch.linspace(0.4, 0.9, 6)
+    feats = torch.rand(6, 3, generator=torch.Generator().manual_seed(0))
+    V, K = make_cameras(1, W, H, dtype=torch.float32, focal=1.25 * W)  # the points reach the image corners
+
+    def run(m):
+        ps = [t.to(device).requires_grad_(with_backward) for t in (means, normals, scales, opac, feats)]
+        out = splat(*ps, V.to(device), K.to(device), W, H, samples=m, seed=3)
+        grads = torch.autograd.grad(out.image.sum() + out.depth.sum(), ps) if with_backward else []
+        return out, grads
+
+    small, g_small = run(8)
+    assert bool((small.indices[0, -1, -1] >= 0).any()) and bool((small.indices[0, 0, 0] >= 0).any())
+    big, g_big = run(m_big)
+    assert big.indices.shape == (1, H, W, m_big)
+    assert torch.equal(big.indices[..., :8], small.indices)
+    assert bool((big.indices[..., 8:] == -1).all())
+    assert torch.equal(big.probs[..., :8], small.probs)
+    assert torch.equal(big.image, small.image) and torch.equal(big.depth, small.depth)
+    assert len(g_big) == len(g_small)
+    for a, b in zip(g_big, g_small):
+        assert torch.equal(a, b)
+
+
 @cuda_test
 def test_slot_offsets_beyond_2_31():
     """B·H·W·m > 2^31: the sample, the forward and the backward of a 2048² image with m = 513 equal those of
@@ -288,31 +317,8 @@ def test_slot_offsets_beyond_2_31():
     free, _ = torch.cuda.mem_get_info()
     if free < 40e9:
         pytest.skip(f"needs ~40 GB of free GPU memory, {free / 1e9:.0f} GB free")
-    xs = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float32)
-    means = torch.stack([torch.stack([x, torch.tensor(y), torch.tensor(0.0)]) for x in xs for y in (-1.0, 1.0)])
-    normals = torch.tensor([[0.0, 0.0, -1.0]]).repeat(6, 1)
-    scales = torch.full((6, 2), 0.3)
-    opac = torch.linspace(0.4, 0.9, 6)
-    feats = torch.rand(6, 3, generator=torch.Generator().manual_seed(0))
-    V, K = make_cameras(1, W, H, dtype=torch.float32, focal=2560.0)
     with_backward = free >= 90e9
-
-    def run(m):
-        ps = [t.to(CUDA).requires_grad_(with_backward) for t in (means, normals, scales, opac, feats)]
-        out = splat(*ps, V.to(CUDA), K.to(CUDA), W, H, samples=m, seed=3)
-        grads = torch.autograd.grad(out.image.sum() + out.depth.sum(), ps) if with_backward else []
-        return out, grads
-
-    small, g_small = run(8)
-    assert bool((small.indices[0, -1, -1] >= 0).any()) and bool((small.indices[0, 0, 0] >= 0).any())
-    big, g_big = run(m_big)
-    assert big.indices.shape == (1, H, W, m_big)
-    assert torch.equal(big.indices[..., :8], small.indices)
-    assert bool((big.indices[..., 8:] == -1).all())
-    assert torch.equal(big.probs[..., :8], small.probs)
-    assert torch.equal(big.image, small.image) and torch.equal(big.depth, small.depth)
-    for a, b in zip(g_big, g_small):
-        assert torch.equal(a, b)
+    _check_large_m(CUDA, W, H, m_big, with_backward)
     if not with_backward:
         pytest.skip(f"forward checked; backward needs ~90 GB of free GPU memory, {free / 1e9:.0f} GB free")
 
@@ -323,11 +329,13 @@ def test_slot_offsets_beyond_2_31():
 
 @pytest.fixture(scope="module")
 def emulated():
-    """splat_cuda.cu built by the host compiler in its emulation mode (cached like the real backends)."""
+    """splat_cuda.cu built by the host compiler in its emulation mode, cached like the real backends (the
+    source-hash define makes it rebuild when any native source or core header changes)."""
     from torch.utils.cpp_extension import load
 
-    return load(name="nsplat_cuda_emu", sources=[str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "emulate.cpp")],
-                extra_cflags=["-O3", "-std=c++17", "-DNSPLAT_CUDA_EMULATE"], extra_include_paths=[str(CSRC)],
+    sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "emulate.cpp")]
+    flags = ["-O3", "-std=c++17", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}"]
+    return load(name="nsplat_cuda_emu", sources=sources, extra_cflags=flags, extra_include_paths=[str(CSRC)],
                 build_directory=str(build_dir("cuda_emu")), verbose=False)
 
 

@@ -28,8 +28,9 @@ from tests.conftest import make_cameras, make_scene
 SIGMA_PX_MAX = {torch.float32: 1e9, torch.float64: 1e12}     # splat screen std-dev (pixels)
 SIGMA_PX_MIN = {torch.float32: 1e-8, torch.float64: 1e-20}
 #: Culled points (centre depth outside [near, far]) are projected with z := 1 in the discarded
-#: intermediates, so their focal × scale must stay below this in float32 (docs/op.md).
-CULLED_FS_MAX = {torch.float32: 1e9, torch.float64: 1e30}
+#: intermediates, so f·s·(1 + |q_x| + |q_y|) must stay below this in float32 (docs/op.md).
+CULLED_FS_MAX = {torch.float32: 1e18, torch.float64: 1e150}
+FAR = 1e10
 LOWPASS = {torch.float32: (1e-12, 0.3, 1.0, 4.0), torch.float64: (0.0, 1e-12, 1.0)}
 OFFSETS = (0.0, 0.0, 1.0, 1e3, 1e6)                             # world offset of scene and cameras
 ESTIMATORS = ("ht", "paper", "sampled")
@@ -71,6 +72,23 @@ def _rotation(a: float, b: float, c: float) -> torch.Tensor:
     return Rz @ Ry @ Rx
 
 
+def _cap_scales(means: torch.Tensor, scales: torch.Tensor, V: torch.Tensor, K: torch.Tensor, near: float,
+                dtype: torch.dtype) -> None:
+    """Shrink (in place) each point's scales into the documented domain for every camera: a bound
+    ``f·s·(1+|x/z|+|y/z|)/z`` of the screen std-dev <= SIGMA_PX_MAX for points inside [near, far],
+    ``f·s·(1+|x|+|y|)`` <= CULLED_FS_MAX for culled ones (project() uses z := 1 for them)."""
+    fmax = float(K[0, 0].abs().clamp_min(K[1, 1].abs())) + float(K[0, 1].abs())
+    for b in range(V.shape[0]):
+        q = means @ V[b, :3, :3].T + V[b, :3, 3]
+        z = q[:, 2]
+        inside = (z >= near) & (z <= FAR)
+        zs = torch.where(inside, z, torch.ones_like(z))
+        lateral = 1.0 + (q[:, 0] / zs).abs() + (q[:, 1] / zs).abs()
+        bound = torch.where(inside, SIGMA_PX_MAX[dtype] * zs, torch.full_like(z, CULLED_FS_MAX[dtype]))
+        factor = (bound / (fmax * scales[:, 0] * lateral)).clamp(max=1.0)
+        scales.mul_(factor[:, None])
+
+
 def draw_case(draw: Draw, max_points: int = 10, max_size: int = 10) -> dict[str, Any]:
     """A random scene, cameras and op settings inside the documented domain (see the module docstring).
 
@@ -104,14 +122,12 @@ def draw_case(draw: Draw, max_points: int = 10, max_size: int = 10) -> dict[str,
         elif kind == "near":
             z = near
         elif kind == "far":
-            z = 1e10 * draw.choice((0.5, 2.0))
+            z = FAR * draw.choice((0.5, 2.0))
         u, v = draw.uniform(-0.5, 1.5) * W, draw.uniform(-0.5, 1.5) * H
         y = (v - cy) / fy
         q[k] = torch.tensor([((u - cx) - skew * y) / f * abs(z), y * abs(z), z], dtype=torch.float64)
         sigma = 10.0 ** draw.uniform(lo, hi)
         scales[k, 0] = sigma * abs(z) / f
-        if kind in ("behind", "far"):
-            scales[k, 0] = min(float(scales[k, 0]), CULLED_FS_MAX[dtype] / max(f, fy))
         scales[k, 1] = scales[k, 0] * 10.0 ** draw.uniform(-2.0, 0.0)
         n = torch.tensor([draw.uniform(-1, 1), draw.uniform(-1, 1), -draw.uniform(0.05, 1.0)], dtype=torch.float64)
         tilt = draw.choice(("any", "any", "edge_on", "nearly_edge_on"))
@@ -143,6 +159,7 @@ def draw_case(draw: Draw, max_points: int = 10, max_size: int = 10) -> dict[str,
         V[b, :3, :3] = Rs[b]
         V[b, :3, 3] = ts[b] - Rs[b] @ torch.full((3,), offset, dtype=torch.float64)
         V[b, 3, 3] = 1.0
+    _cap_scales(means, scales, V, K, near, dtype)
     feats = torch.tensor([[draw.uniform(-3, 3) for _ in range(C)] for _ in range(N)], dtype=torch.float64)
     feats = feats.reshape(N, C)
     bg = torch.tensor([draw.uniform(-1, 2) for _ in range(C)], dtype=torch.float64)
@@ -189,7 +206,7 @@ def check_case(case: dict[str, Any]) -> list[str]:
         bad.append("non-zero probability in an empty slot")
     with torch.no_grad():
         proj = project(case["means"], case["normals"], case["scales"], case["opacities"], case["viewmats"],
-                       case["Ks"], near=kw["near"], far=1e10, lowpass=kw["lowpass"])
+                       case["Ks"], near=kw["near"], far=FAR, lowpass=kw["lowpass"])
         B = idx.shape[0]
         cams = torch.arange(B)[:, None, None, None].expand_as(idx)
         if bool(filled.any()) and not bool((proj.amps[cams[filled], idx[filled].long()] > 0).all()):

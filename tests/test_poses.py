@@ -70,6 +70,31 @@ def test_twist_rotates_about_camera_centre_and_translates_in_camera_frame():
     assert torch.allclose(camera_centres(V3)[0] - camera_centres(V)[0], -0.1 * forward, atol=1e-6)
 
 
+def test_pivot_rotation_keeps_the_pivot_and_reparametrises_the_same_poses():
+    V, K = _cameras(2)
+    c = torch.tensor([[0.0, 0.0, 1.7], [0.1, -0.2, 2.3]])
+    corr = CameraCorrection(2, pivots=c)
+    xi = torch.tensor([[0.01, -0.02, 0.03, 0.02, -0.01, 0.015], [0.0, 0.0, 0.0, 0.0, 0.03, 0.0]])
+    with torch.no_grad():
+        corr.twist.copy_(xi)
+    V2, _ = corr(V, K)
+    # closed form T(c) exp(ξ) T(−c)
+    D = CameraCorrection(2)
+    with torch.no_grad():
+        D.twist.copy_(xi)
+    T = torch.eye(4).repeat(2, 1, 1)
+    T[:, :3, 3] = c
+    Ti = torch.eye(4).repeat(2, 1, 1)
+    Ti[:, :3, 3] = -c
+    assert torch.allclose(V2, T @ D.delta() @ Ti @ V, atol=1e-6)
+    # a pure rotation about the pivot leaves the pivot's world point where the camera sees it
+    world = torch.linalg.inv(V[1]) @ torch.cat([c[1], torch.ones(1)])
+    assert torch.allclose((V2[1] @ world)[:3], c[1], atol=1e-6)
+    assert pose_errors(V2[1:], V[1:])[0].item() == pytest.approx(math.degrees(0.03), rel=1e-4)
+    with pytest.raises(ValueError, match="pivots"):
+        CameraCorrection(3, pivots=c)
+
+
 def test_perturbation_has_requested_size():
     V, _ = _cameras()
     P = perturb_viewmats(V, 2.0, 0.05, generator=torch.Generator().manual_seed(0))

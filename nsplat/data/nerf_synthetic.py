@@ -100,7 +100,10 @@ def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] 
     meta_path = root / f"transforms_{split}.json"
     if not meta_path.is_file():
         raise FileNotFoundError(f"root: no {meta_path.name} in {root}")
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{meta_path}: not valid JSON (truncated or corrupt?): {exc}") from exc
     if "camera_angle_x" not in meta or "frames" not in meta:
         raise ValueError(f"{meta_path}: expected keys 'camera_angle_x' and 'frames'")
     bg = torch.tensor([float(c) for c in background], dtype=torch.float32)
@@ -110,8 +113,16 @@ def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] 
     if not frames:
         raise ValueError(f"{meta_path}: no frames")
     rgba, c2w, names = [], [], []
-    for fr in frames:
-        img = iio.imread(_image_path(root, fr["file_path"]))
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
+            raise ValueError(f"{meta_path}: frame {i} lacks 'file_path' or 'transform_matrix'")
+        img_path = _image_path(root, fr["file_path"])
+        if not img_path.is_file():
+            raise FileNotFoundError(f"{meta_path}: frame {i}: image file not found: {img_path}")
+        try:
+            img = iio.imread(img_path)
+        except Exception as exc:  # noqa: BLE001 - any decoder failure means an unreadable image
+            raise ValueError(f"{img_path}: cannot read image (truncated or corrupt?): {exc}") from exc
         if img.ndim != 3 or img.shape[2] not in (3, 4):
             raise ValueError(f"{fr['file_path']}: expected an RGB or RGBA image, got shape {img.shape}")
         img = img.astype(np.float32) / float(np.iinfo(img.dtype).max)

@@ -58,7 +58,10 @@ def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> P
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no PLY file at {path}")
-    ply = PlyData.read(str(path))
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
+        raise ValueError(f"{path}: not a readable PLY file (truncated or corrupt?): {exc}") from exc
     if "vertex" not in [e.name for e in ply.elements]:
         raise ValueError(f"{path}: no 'vertex' element")
     v = ply["vertex"]

@@ -51,7 +51,8 @@ from nsplat.scene import ATTRIBUTES, SceneConfig, SurfelScene
 
 log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
-#: Op seeds of stage 2 are ``seed · SEED_STRIDE + OFFSET + step`` (stage 1 uses ``seed · SEED_STRIDE + …``).
+#: Op seeds: stage-2 step ``k`` uses ``seed·STRIDE + STAGE2_OFFSET + k``, evaluation ``seed·STRIDE + EVAL_OFFSET``
+#: (disjoint from stage 1's ``seed·10⁶ + step·batch + j`` in :func:`nsplat.reconstruct.fit` for any run length).
 _SEED_STRIDE, _STAGE2_OFFSET, _EVAL_OFFSET = 1_000_000_000, 500_000_000, 900_000_000
 
 
@@ -405,14 +406,14 @@ def build_discriminator(cfg: Config, cond_channels: int) -> PatchDiscriminator |
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
-def _initial_geometry(cfg: Config, train: Views) -> SurfelScene:
+def _initial_geometry(cfg: Config, train: Views, seed: int) -> SurfelScene:
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
     if g.init == "ply":
         return SurfelScene.load_ply(_path(g.ply or ""), scfg, device=device)
     hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold, dilate=g.dilate,
-                     min_seen=g.min_seen, max_points=g.max_points, seed=cfg.seed)
+                     min_seen=g.min_seen, max_points=g.max_points, seed=seed)
     log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
     return SurfelScene.from_points(scfg, hp.means.to(device), hp.normals.to(device),
                                    opacities=g.init_opacity if g.opacity is None else None,
@@ -421,7 +422,7 @@ def _initial_geometry(cfg: Config, train: Views) -> SurfelScene:
 
 def fit_geometry(cfg: Config, ctx: RunContext, train: Views) -> SurfelScene:
     """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``."""
-    scene = _initial_geometry(cfg, train)
+    scene = _initial_geometry(cfg, train, ctx.seed)
     if cfg.geometry.optim.epochs > 0:
         fit(scene, train.images, train.viewmats, train.Ks, cfg.geometry.optim, cfg.render, ctx.run_dir / "geometry",
             seed=ctx.seed, resume=ctx.resume, background=train.background, progress=cfg.log.progress)
@@ -466,6 +467,7 @@ class Trainer:
     sched_g: torch.optim.lr_scheduler.LRScheduler
     sched_d: torch.optim.lr_scheduler.LRScheduler | None
     generator: torch.Generator
+    seed: int = 0
     step: int = 0
     history: list = dataclasses.field(default_factory=list)
     elapsed: float = 0.0
@@ -473,7 +475,8 @@ class Trainer:
     def state(self) -> dict:
         """Checkpoint payload (the scene's point count is implied by its tensors)."""
         st = {"model": self.model.state_dict(), "opt_g": self.opt_g.state_dict(), "sched_g": self.sched_g.state_dict(),
-              "generator": self.generator.get_state(), "history": self.history, "elapsed": self.elapsed}
+              "generator": self.generator.get_state(), "seed": self.seed, "history": self.history,
+              "elapsed": self.elapsed}
         if self.disc is not None:
             st.update(disc=self.disc.state_dict(), opt_d=self.opt_d.state_dict(), sched_d=self.sched_d.state_dict())
         return st
@@ -484,6 +487,7 @@ class Trainer:
         self.opt_g.load_state_dict(st["opt_g"])
         self.sched_g.load_state_dict(st["sched_g"])
         self.generator.set_state(st["generator"])
+        self.seed = int(st["seed"])  # a resumed run keeps its seed whatever --seed says now
         self.history, self.elapsed, self.step = list(st["history"]), float(st["elapsed"]), int(st["step"])
         if self.disc is not None:
             if "disc" not in st:
@@ -493,8 +497,9 @@ class Trainer:
             self.sched_d.load_state_dict(st["sched_d"])
 
 
-def make_trainer(cfg: Config, scene: SurfelScene, device: torch.device) -> Trainer:
-    """Networks, optimisers (Adam) and exponential schedulers for stage 2."""
+def make_trainer(cfg: Config, scene: SurfelScene, device: torch.device, seed: int = 0) -> Trainer:
+    """Networks, optimisers (Adam) and exponential schedulers for stage 2; ``seed`` drives the
+    batch order and the op's per-step seeds."""
     n = cfg.neural
     model = NeuralRenderer(scene, cfg).to(device)
     groups = scene.param_groups(n.learn) + [{"params": list(model.unet.parameters()), "lr": n.lr, "name": "unet"}]
@@ -507,8 +512,8 @@ def make_trainer(cfg: Config, scene: SurfelScene, device: torch.device) -> Train
         disc = disc.to(device)
         opt_d = torch.optim.Adam(disc.parameters(), lr=n.gan.lr, betas=tuple(n.gan.betas))
         sched_d = torch.optim.lr_scheduler.ExponentialLR(opt_d, gamma)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    return Trainer(model, disc, opt_g, opt_d, sched_g, sched_d, gen)
+    gen = torch.Generator().manual_seed(seed)
+    return Trainer(model, disc, opt_g, opt_d, sched_g, sched_d, gen, seed)
 
 
 def _nchw(x: torch.Tensor) -> torch.Tensor:
@@ -520,8 +525,7 @@ def train_step(cfg: Config, tr: Trainer, train: Views) -> dict[str, float]:
     n = cfg.neural
     idx = torch.randperm(len(train), generator=tr.generator)[:n.batch].to(train.images.device)
     gt = _nchw(train.images[idx])
-    seed = tr_seed(cfg, tr.step)
-    rgb, cond = tr.model(train.viewmats[idx], train.Ks[idx], train.width, train.height, seed)
+    rgb, cond = tr.model(train.viewmats[idx], train.Ks[idx], train.width, train.height, op_seed(tr.seed, tr.step))
     use_gan = tr.disc is not None and tr.step >= n.gan.start
     out: dict[str, float] = {}
     if use_gan:
@@ -544,9 +548,14 @@ def train_step(cfg: Config, tr: Trainer, train: Views) -> dict[str, float]:
     return out
 
 
-def tr_seed(cfg: Config, step: int) -> int:
-    """Op seed of stage-2 step ``step`` (differs per step so samples differ)."""
-    return cfg.seed * _SEED_STRIDE + _STAGE2_OFFSET + step
+def op_seed(seed: int, step: int) -> int:
+    """Op seed of stage-2 step ``step`` of a run seeded ``seed`` (differs per step so samples differ)."""
+    return seed * _SEED_STRIDE + _STAGE2_OFFSET + step
+
+
+def eval_seed(cfg: Config) -> int:
+    """Op seed of every evaluation render (validation, test, orbit): fixed by the config's seed."""
+    return cfg.seed * _SEED_STRIDE + _EVAL_OFFSET
 
 
 @torch.no_grad()
@@ -590,7 +599,7 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
         count = state["model"]["scene._means"].shape[0]
         scene = SurfelScene(neural_scene_config(cfg), count, device=ctx.device)
     assert scene is not None
-    tr = make_trainer(cfg, scene, ctx.device)
+    tr = make_trainer(cfg, scene, ctx.device, ctx.seed)
     if state is not None:
         tr.load(state)
         log.info("resumed stage 2 at step %d", tr.step)
@@ -620,14 +629,14 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
                 for name, sub in (("train", tr_sub), ("val", val_sub)):
                     if sub is None:
                         continue
-                    rgb, _ = render_split(tr.model, sub, seed=cfg.seed * _SEED_STRIDE + _EVAL_OFFSET)
+                    rgb, _ = render_split(tr.model, sub, seed=eval_seed(cfg))
                     rec[f"{name}_psnr"] = float(psnr(rgb, sub.images).mean())
                     writer.add_scalar(f"psnr/{name}", rec[f"{name}_psnr"], tr.step)
                 tr.history.append(rec)
                 log.debug("step %d: %s", tr.step, rec)
             if lg.images and (tr.step % lg.images == 0 or last):
                 sub = val_sub if val_sub is not None else tr_sub
-                rgb, cond = render_split(tr.model, _subset(sub, 2), seed=cfg.seed * _SEED_STRIDE + _EVAL_OFFSET)
+                rgb, cond = render_split(tr.model, _subset(sub, 2), seed=eval_seed(cfg))
                 gt = _subset(sub, 2).images
                 writer.add_images("images/features", _preview(cond), tr.step)
                 writer.add_images("images/render", _nchw(rgb), tr.step)
@@ -652,7 +661,7 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     state = None
     if ctx.resume:
         try:
-            state = load_checkpoint(ctx.run_dir, map_location=ctx.device)
+            state = load_checkpoint(ctx.run_dir, map_location="cpu")
         except CheckpointError:
             state = None
     timing = {}
@@ -672,7 +681,7 @@ def run(cfg: Config, ctx: RunContext) -> dict:
 
 def load_model(cfg: Config, ctx: RunContext) -> NeuralRenderer:
     """The trained renderer from the run's latest checkpoint."""
-    state = load_checkpoint(ctx.run_dir, map_location=ctx.device)
+    state = load_checkpoint(ctx.run_dir, map_location="cpu")
     count = state["model"]["scene._means"].shape[0]
     model = NeuralRenderer(SurfelScene(neural_scene_config(cfg), count, device=ctx.device), cfg).to(ctx.device)
     model.load_state_dict(state["model"])
@@ -705,7 +714,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRen
     model = model if model is not None else load_model(cfg, ctx)
     views = load_views(cfg, split, ctx.device)
     t0 = time.perf_counter()
-    rgb, _ = render_split(model, views, seed=cfg.seed * _SEED_STRIDE + _EVAL_OFFSET)
+    rgb, _ = render_split(model, views, seed=eval_seed(cfg))
     seconds = time.perf_counter() - t0
     p, s = psnr(rgb, views.images), ssim(rgb, views.images)
     ok, lp_msg = lpips_status()
@@ -771,7 +780,7 @@ def render(cfg: Config, ctx: RunContext) -> Path:
     orbit = dataclasses.replace(train, images=train.images[:1].expand(viewmats.shape[0], -1, -1, -1),
                                 alphas=train.alphas[:1].expand(viewmats.shape[0], -1, -1, -1), viewmats=viewmats,
                                 Ks=Ks, names=[f"orbit_{i}" for i in range(viewmats.shape[0])])
-    rgb, _ = render_split(model, orbit, seed=cfg.seed * _SEED_STRIDE + _EVAL_OFFSET)
+    rgb, _ = render_split(model, orbit, seed=eval_seed(cfg))
     frames = _png(rgb)
     H, W = frames.shape[1:3]
     frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")  # even sizes for yuv420p

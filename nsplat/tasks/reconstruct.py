@@ -258,7 +258,7 @@ def _restore(cfg: Config, ctx: RunContext, pc: PointCloud) -> SurfelScene:
 
 def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) -> list[Path]:
     """PNGs ``renders/view_<i>.png`` of ``cfg.renders`` held-out views: GT | reconstruction, both
-    rendered with the exact dense renderer."""
+    rendered with the exact dense renderer; and ``renders/points.png``, a scatter plot of both clouds."""
     if cfg.renders < 1:
         return []
     images, viewmats, Ks = cached_gt_images(pc, cfg.data, cfg.render, cfg.renders, offset=1_000_000, tag="heldout")
@@ -276,8 +276,46 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
             p = folder / f"view_{b}.png"
             iio.imwrite(p, (pair.numpy() * 255).round().astype(np.uint8))
             paths.append(p)
+    paths.append(write_point_plot(folder / "points.png", scene.means.detach().cpu(), pc))
     scene.to(ctx.device)
     return paths
+
+
+def write_point_plot(path: Path, points: torch.Tensor, pc: PointCloud) -> Path:
+    """Scatter plot ``path`` of the GT cloud and ``points [N,3]`` (coloured by distance to the GT, in units
+    of the GT bounding-box diagonal, clipped at 0.1), from two directions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from nsplat.metrics import bbox_diagonal, nn_distances
+
+    gt = pc.points.double().numpy()
+    pred = points.double().numpy()
+    dist = nn_distances(pred, gt) / bbox_diagonal(gt)
+    fig = plt.figure(figsize=(7, 6))
+    lo, hi = gt.min(0), gt.max(0)
+    pad = 0.25 * (hi - lo)
+    for i, (elev, azim) in enumerate(((20, -60), (20, 120))):
+        for j, (pts, col, title) in enumerate(((gt, "0.4", "ground truth"), (pred, dist, "reconstruction"))):
+            ax = fig.add_subplot(2, 2, 1 + 2 * i + j, projection="3d")
+            if isinstance(col, str):
+                ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.3, color=col)
+            else:
+                sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.3, c=col, cmap="viridis", vmin=0.0, vmax=0.1)
+            ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
+            ax.set_ylim(lo[1] - pad[1], hi[1] + pad[1])
+            ax.set_zlim(lo[2] - pad[2], hi[2] + pad[2])
+            ax.view_init(elev=elev, azim=azim)
+            ax.set_axis_off()
+            if i == 0:
+                ax.set_title(title, fontsize=8)
+    fig.subplots_adjust(left=0.0, right=0.85, bottom=0.0, top=0.95, wspace=0.0, hspace=0.0)
+    fig.colorbar(sc, ax=fig.axes, shrink=0.5, label="distance to GT / diagonal")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, float]:

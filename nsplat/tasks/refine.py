@@ -127,6 +127,10 @@ class PoseConfig:
     learn_focal: bool = False
     shared_focal: bool = True
     frozen: list[int] = dataclasses.field(default_factory=list)
+    #: rotation pivot of the corrections: ``scene`` (the initial cloud's median depth on each
+    #: camera's optical axis; decouples rotation from translation, see :mod:`nsplat.poses`) or
+    #: ``centre`` (the optical centre).
+    pivot: Literal["scene", "centre"] = "centre"
 
 
 @dataclasses.dataclass
@@ -154,7 +158,14 @@ class OptimConfig:
         schedule: ``joint`` (poses and scene every step) or ``alternating`` (``alternate_every``
             steps of poses, then as many of scene + shading, and so on, starting with poses).
         alternate_every: phase length of the alternating schedule.
-        decay_every: halve every learning rate every this many steps (0: constant).
+        warmup: the first ``warmup`` steps update only the parameter groups in ``warmup_groups``
+            (before the schedule above starts), e.g. registering the cameras to the fixed initial
+            cloud before the geometry may move. On the room benchmark this converged more slowly
+            than joint optimisation (docs/results.md), so the room config uses 0.
+        warmup_groups: group names updated during the warm-up: ``pose``, ``focal``, ``means``,
+            ``normals``, ``scales``, ``opacities``, ``features``, ``sh``.
+        decay_every: halve every learning rate every this many steps (0: constant), counted from
+            the end of the warm-up.
         decay: the factor applied at each decay.
         lr: learning rates.
     """
@@ -163,9 +174,23 @@ class OptimConfig:
     batch: int = 4
     schedule: Literal["joint", "alternating"] = "joint"
     alternate_every: int = 10
+    warmup: int = 0
+    warmup_groups: list[str] = dataclasses.field(default_factory=lambda: ["pose", "focal", "features", "sh"])
     decay_every: int = 0
     decay: float = 0.5
     lr: LrConfig = dataclasses.field(default_factory=LrConfig)
+
+    def __post_init__(self) -> None:
+        bad = [g for g in self.warmup_groups if g not in GROUPS]
+        if bad:
+            raise ConfigError(f"optim.warmup_groups: unknown group(s) {bad}; expected names from {list(GROUPS)}")
+        if self.warmup < 0:
+            raise ConfigError(f"optim.warmup: expected >= 0, got {self.warmup}")
+
+
+#: Optimiser parameter-group names: camera groups, then scene + shading groups.
+CAMERA_GROUPS = ("pose", "focal")
+GROUPS = CAMERA_GROUPS + ("means", "normals", "scales", "opacities", "features", "sh")
 
 
 @dataclasses.dataclass
@@ -191,6 +216,11 @@ class Config:
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     mask_loss: bool = True
+    #: also leave out of the loss the pixels where the current render's (detached) alpha is below this
+    #: (0: off). Reference pixels that no point covers (parts of the room no keyframe saw) cannot be
+    #: explained by any pose; against the background colour they pull every camera towards showing
+    #: more of the cloud, a bias of the pose estimate.
+    coverage_mask: float = 0.0
     filter: FilterConfig = dataclasses.field(default_factory=FilterConfig)
     log: LogConfig = dataclasses.field(default_factory=LogConfig)
 
@@ -305,6 +335,18 @@ def load_data(cfg: Config, device: torch.device) -> tuple[Frames, SurfelScene]:
 
 
 # ---------------------------------------------------------------------------------------- model
+def scene_pivots(means: torch.Tensor, viewmats: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
+    """``[B, 3]`` pivots ``(0, 0, d_b)`` in camera coordinates: ``d_b`` the median depth of the points
+    of ``means [N,3]`` in front of camera ``b`` and inside its 90° cone (1 when none are)."""
+    cam = torch.einsum("bij,nj->bni", viewmats[:, :3, :3].to(means), means) + viewmats[:, None, :3, 3].to(means)
+    z = cam[..., 2]
+    ok = (z > near) & (cam[..., :2].norm(dim=-1) < z)
+    out = torch.zeros(viewmats.shape[0], 3, dtype=means.dtype, device=means.device)
+    for b in range(viewmats.shape[0]):
+        out[b, 2] = z[b][ok[b]].median() if bool(ok[b].any()) else 1.0
+    return out
+
+
 class Refiner(torch.nn.Module):
     """Scene + shading + camera corrections; produces rendered views of camera indices."""
 
@@ -316,8 +358,9 @@ class Refiner(torch.nn.Module):
         self.sh = (SHLighting(cfg.scene.channels, cfg.shading.ambient, learnable=cfg.shading.learn_sh)
                    if cfg.shading.model == "sh" else None)
         p = cfg.poses
+        pivots = scene_pivots(scene.means.detach(), frames.viewmats) if p.pivot == "scene" else None
         self.cameras = (CameraCorrection(frames.count, learn_pose=p.learn, learn_focal=p.learn_focal,
-                                         shared_focal=p.shared_focal, frozen=p.frozen)
+                                         shared_focal=p.shared_focal, frozen=p.frozen, pivots=pivots)
                         if (p.learn or p.learn_focal) else None)
 
     def camera(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -377,16 +420,38 @@ def _optimizers(model: Refiner, cfg: Config) -> dict[str, torch.optim.Optimizer]
 
 
 def _set_lr(opts: dict[str, torch.optim.Optimizer], cfg: Config, step: int) -> None:
-    f = cfg.optim.decay ** (step // cfg.optim.decay_every) if cfg.optim.decay_every > 0 else 1.0
+    o = cfg.optim
+    f = o.decay ** (max(0, step - o.warmup) // o.decay_every) if o.decay_every > 0 else 1.0
     for opt in opts.values():
         for g in opt.param_groups:
             g["lr"] = g["initial_lr"] * f
 
 
 def _active(cfg: Config, step: int) -> set[str]:
-    if cfg.optim.schedule == "joint":
-        return {"camera", "scene"}
-    return {"camera"} if (step // cfg.optim.alternate_every) % 2 == 0 else {"scene"}
+    """Parameter-group names updated at ``step`` (warm-up, then the joint or alternating schedule)."""
+    o = cfg.optim
+    if step < o.warmup:
+        return set(o.warmup_groups)
+    if o.schedule == "joint":
+        return set(GROUPS)
+    k = step - o.warmup
+    camera_phase = (k // o.alternate_every) % 2 == 0
+    return set(CAMERA_GROUPS) if camera_phase else set(GROUPS) - set(CAMERA_GROUPS)
+
+
+def _step_active(opts: dict[str, torch.optim.Optimizer], active: set[str]) -> None:
+    """Adam steps of the active groups only (inactive groups' gradients are dropped, so Adam leaves
+    their values and moments untouched)."""
+    for opt in opts.values():
+        any_active = False
+        for g in opt.param_groups:
+            if g["name"] in active:
+                any_active = True
+            else:
+                for p in g["params"]:
+                    p.grad = None
+        if any_active:
+            opt.step()
 
 
 def _prune(model: Refiner, keep: torch.Tensor, opts: dict[str, torch.optim.Optimizer]) -> None:
@@ -530,13 +595,13 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
         active = _active(cfg, step)
         for opt in opts.values():
             opt.zero_grad(set_to_none=True)
-        img, _ = model(idx, seed=ctx.seed * 1_000_003 + step)
+        img, alpha = model(idx, seed=ctx.seed * 1_000_003 + step)
         mask = fr.masks[idx] if cfg.mask_loss else torch.ones_like(fr.masks[idx])
+        if cfg.coverage_mask > 0:
+            mask = mask & (alpha.detach()[..., 0] >= cfg.coverage_mask)
         loss = _masked_l1(img, fr.images[idx], mask)
         loss.backward()
-        for name, opt in opts.items():
-            if name in active:
-                opt.step()
+        _step_active(opts, active)
         done = step + 1
         if cfg.filter.due(done):
             bad = run_filter(model, cfg, seed=ctx.seed * 1_000_003 + done)
@@ -553,6 +618,8 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
                 rot, tr = pose_errors(V, fr.viewmats_gt)
                 writer.add_scalar("pose/rot_deg", float(rot.mean()), done)
                 writer.add_scalar("pose/trans", float(tr.mean()), done)
+                log.debug("step %d: loss %.5f rot %.4f° trans %.5f", done, float(loss.detach()),
+                          float(rot.mean()), float(tr.mean()))
                 bar.set_postfix(loss=f"{float(loss.detach()):.4f}", rot=f"{float(rot.mean()):.3f}",
                                 tr=f"{float(tr.mean()):.4f}", n=model.scene.num_points)
         if cfg.log.image_every and done % cfg.log.image_every == 0:

@@ -107,7 +107,8 @@ std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con,
 std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
                                                   at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor entries,
                                                   at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
-                                                  at::Tensor g_depth, int64_t width, int64_t height, int64_t estimator) {
+                                                  at::Tensor g_depth, int64_t width, int64_t height,
+                                                  int64_t estimator) {
   check_cuda({mu, con, amp, nrm, off, zc, Ks, entries, seg, dalpha, wf, g_img, g_depth});
   check_dtype({mu, con, amp, nrm, off, zc, dalpha, wf, g_img, g_depth});
   check_points(amp);

@@ -68,7 +68,10 @@ using DeviceGuard = c10::cuda::CUDAGuard;
 Stream current_stream() { return c10::cuda::getCurrentCUDAStream(); }
 #endif
 
-at::Tensor bytes(int64_t n, const at::TensorOptions& dev) { return at::empty({std::max<int64_t>(n, 1)}, dev.dtype(at::kByte)); }
+// Raw device buffer of n bytes (at least 1) from PyTorch's caching allocator.
+at::Tensor bytes(int64_t n, const at::TensorOptions& dev) {
+  return at::empty({std::max<int64_t>(n, 1)}, dev.dtype(at::kByte));
+}
 
 template <typename T>
 T* as(at::Tensor& t) { return reinterpret_cast<T*>(t.data_ptr()); }
@@ -83,7 +86,8 @@ void sort_keys(const uint64_t* in, uint64_t* out, int64_t n, const at::TensorOpt
   size_t temp_bytes = 0;
   C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(nullptr, temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
   at::Tensor temp = bytes(static_cast<int64_t>(temp_bytes), dev);
-  C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
+  C10_CUDA_CHECK(
+      cub::DeviceRadixSort::SortKeys(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
 #endif
 }
 
@@ -142,7 +146,8 @@ __global__ void box_final_kernel(const double* __restrict__ part_box, const int6
   const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (t < 4) {
     double acc = t < 2 ? INFINITY : -INFINITY;
-    for (int64_t i = 0; i < parts; ++i) acc = t < 2 ? cpu_min(acc, part_box[4 * i + t]) : cpu_max(acc, part_box[4 * i + t]);
+    for (int64_t i = 0; i < parts; ++i)
+      acc = t < 2 ? cpu_min(acc, part_box[4 * i + t]) : cpu_max(acc, part_box[4 * i + t]);
     box[t] = acc;
   } else if (t == 4) {
     int64_t cnt = 0;
