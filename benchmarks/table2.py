@@ -21,6 +21,10 @@ PAPER_TABLE2 = {1: (8.287, 6.766), 3: (8.87, 3.532), 5: (8.189, 2.717), 20: (1.0
 
 
 def plot(x: list[int], rows: list[dict], xlabel: str, path, logx: bool = False) -> None:
+    """Two log-log panels (Chamfer, Hausdorff; both definitions) of ``rows`` against ``x``; nothing
+    is drawn when fewer than two runs have finished."""
+    if len(rows) < 2:
+        return
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
     for ax, key in zip(axes, ("chamfer", "hausdorff")):
         ax.plot(x, [r[key] for r in rows], "o-", label=f"{key} (plain)")

@@ -11,6 +11,7 @@ import importlib.util
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 
@@ -19,6 +20,8 @@ import torch
 log = logging.getLogger("nsplat.ops")
 CSRC = Path(__file__).resolve().parent / "csrc"
 _MODULES: dict[str, ModuleType] = {}
+#: A build lock older than this is taken to be left by a killed build (a real build takes ~1-3 minutes).
+STALE_LOCK_S = 900
 
 
 def build_dir(kind: str) -> Path:
@@ -61,6 +64,10 @@ def _load(kind: str) -> ModuleType:
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         return module
+    lock = target / "lock"
+    if lock.exists() and time.time() - lock.stat().st_mtime > STALE_LOCK_S:
+        log.warning("nsplat: removing a stale build lock %s (left by an interrupted build)", lock)
+        lock.unlink(missing_ok=True)
     log.warning("nsplat: compiling the %s extension into %s (first use only, about a minute)...", kind, target)
     module = load(name=f"nsplat_{kind}", sources=sources, extra_include_paths=[str(CSRC)],
                   build_directory=str(target), verbose=False, **flags)
