@@ -20,6 +20,10 @@ class CheckpointError(RuntimeError):
     """No usable checkpoint where one was expected, or a checkpoint file is corrupt."""
 
 
+class NoCheckpoint(CheckpointError):
+    """The run folder has no checkpoint yet (resuming may start from scratch; a corrupt one may not)."""
+
+
 def rng_state() -> dict[str, Any]:
     """Capture Python, NumPy and torch (CPU and CUDA) RNG states."""
     state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
@@ -70,15 +74,20 @@ def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int =
 
 
 def load_checkpoint(run_dir: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load the latest complete checkpoint of ``run_dir`` (raises :class:`CheckpointError` if none).
+    """Load the latest complete checkpoint of ``run_dir``.
+
+    Raises :class:`NoCheckpoint` when there is none and :class:`CheckpointError` when the latest one
+    is missing or unreadable (never silently falls back to an older or to no checkpoint).
 
     RNG states are restored. The returned dict has the saved state plus ``step``.
     """
     folder = Path(run_dir) / "checkpoints"
     latest = folder / "latest"
     if not latest.is_file():
-        raise CheckpointError(f"no checkpoint to resume from in {folder}")
+        raise NoCheckpoint(f"no checkpoint to resume from in {folder}")
     path = folder / latest.read_text().strip()
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} named by {latest} does not exist")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=False)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file

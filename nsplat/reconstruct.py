@@ -21,7 +21,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from nsplat.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
 from nsplat.ops import SplatOutput, splat_dense, tangent_frame
 from nsplat.scene import SurfelScene
 from nsplat.shading import lambert
@@ -241,7 +241,7 @@ def fit(scene: SurfelScene, images: torch.Tensor, viewmats: torch.Tensor, Ks: to
     if resume:
         try:
             state = load_checkpoint(run_dir)
-        except CheckpointError:
+        except NoCheckpoint:
             log.info("no checkpoint in %s; starting from scratch", run_dir)
         else:
             scene.load_state_dict(state["scene"])

@@ -96,6 +96,12 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     z = q[..., 2]
     in_range = (z >= near) & (z <= far)
     zs = torch.where(in_range, z, torch.ones_like(z))
+    # culled points: zero tangent axes and centre so that their discarded intermediates stay finite
+    # (otherwise huge off-range coordinates can overflow float32 and poison the gradients with NaN)
+    keep = in_range[..., None]
+    T0 = torch.where(keep, T0, torch.zeros_like(T0))
+    T1 = torch.where(keep, T1, torch.zeros_like(T1))
+    q = torch.where(keep, q, torch.zeros_like(q))
     x_n, y_n = q[..., 0] / zs, q[..., 1] / zs
     K2 = Ks[:, None, :2, :2]
     uv = torch.stack([x_n, y_n], dim=-1)

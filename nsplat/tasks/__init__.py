@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
+from nsplat.config import ConfigError
+
 TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",
     "demo": "nsplat.tasks.demo",
@@ -18,7 +20,7 @@ TASKS: dict[str, str] = {
 
 
 def get_task(name: str) -> ModuleType:
-    """Import the module of task ``name``; unknown names raise ``ValueError`` listing the valid ones."""
+    """Import the module of task ``name``; unknown names raise :class:`ConfigError` listing the valid ones."""
     if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; expected one of {sorted(TASKS)}")
+        raise ConfigError(f"task: unknown task {name!r}; expected one of {sorted(TASKS)}")
     return importlib.import_module(TASKS[name])

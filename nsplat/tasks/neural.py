@@ -36,7 +36,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from nsplat.cameras import look_at
-from nsplat.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
 from nsplat.config import ConfigError
 from nsplat.data.nerf_synthetic import Views, load_split
 from nsplat.data.procedural import ProceduralSpec, ensure_scene
@@ -662,7 +662,7 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     if ctx.resume:
         try:
             state = load_checkpoint(ctx.run_dir, map_location="cpu")
-        except CheckpointError:
+        except NoCheckpoint:
             state = None
     timing = {}
     if state is None:
