@@ -1,5 +1,8 @@
 """Neural rendering on NeRF-synthetic lego: held-out PSNR/SSIM and training time, one factor at a time.
 
+(Any ``neural`` config works: ``--config configs/default.yaml --resolution 64`` runs the same study on
+the embedded procedural scene.)
+
 Stage 1 (RGB surfels on the visual hull, fitted with the op) runs once; every variant then trains
 stage 2 from that geometry (``geometry.init=ply``, ``geometry.optim.epochs=0``) with
 ``python train.py --config configs/lego.yaml``, so the variants differ only in:
@@ -10,8 +13,9 @@ stage 2 from that geometry (``geometry.init=ply``, ``geometry.optim.epochs=0``) 
     sampled   estimator "sampled" (plain autograd through the sample)     (c) ht vs sampled
 
 Each run logs train and val PSNR over steps (``history.json``; overfitting) and evaluates the test
-split. Prints a Markdown table, writes ``benchmarks/results/neural_lego-<res>.json`` and a figure
-``docs/images/neural/lego-<res>.png`` (test renders vs GT, PSNR curves).
+split. Prints a Markdown table, writes ``benchmarks/results/neural_<config>-<res>.json`` and a figure
+``docs/images/neural/<config>-<res>.png`` (test renders vs GT, PSNR curves), ``<config>`` being the
+config file's stem (``lego``, ``default``).
 
     python benchmarks/neural_lego.py --resolution 200 --steps 600        # the CPU budget in docs
 """
@@ -83,7 +87,7 @@ def variant(name: str, ply: Path, args: argparse.Namespace, root: Path) -> dict:
             "stage2_seconds": timing["neural_steps_s"], "run": str(run)}
 
 
-def figure(rows: list[dict], res: int, path: Path) -> None:
+def figure(rows: list[dict], title: str, path: Path) -> None:
     """Row 1: test view 0 of each variant and GT; row 2: train/val PSNR over steps."""
     fig = plt.figure(figsize=(3 * (len(rows) + 1), 6))
     for i, r in enumerate(rows):
@@ -104,7 +108,7 @@ def figure(rows: list[dict], res: int, path: Path) -> None:
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=len(rows))
-    fig.suptitle(f"lego {res}x{res}: test view r_0 and train/val PSNR over steps")
+    fig.suptitle(f"{title}: test view r_0 and train/val PSNR over steps")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
@@ -117,15 +121,17 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=600, help="stage-2 steps per variant")
     p.add_argument("--validate", type=int, default=100, help="steps between train/val PSNR evaluations")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    p.add_argument("--runs", type=Path, default=None, help="runs folder (default runs/bench-neural-lego-<res>)")
+    p.add_argument("--runs", type=Path, default=None, help="runs folder (default runs/bench-neural-<config>-<res>)")
     p.add_argument("--resume", action="store_true", help="resume unfinished runs instead of restarting them")
     p.add_argument("extra", nargs="*", help="extra config overrides for every run (key=value)")
     args = p.parse_args()
-    root = args.runs or REPO / "runs" / f"bench-neural-lego-{args.resolution}"
+    args.config = args.config.resolve()
+    stem = args.config.stem
+    root = args.runs or REPO / "runs" / f"bench-neural-{stem}-{args.resolution}"
     root.mkdir(parents=True, exist_ok=True)
     ply, geo_s = geometry(args, root)
     rows = [variant(v, ply, args, root) for v in args.variants]
-    lines = [f"lego {args.resolution}x{args.resolution}, {args.steps} stage-2 steps, stage 1 (shared): {geo_s:.0f} s, "
+    lines = [f"{stem} {args.resolution}x{args.resolution}, {args.steps} stage-2 steps, stage 1 (shared): {geo_s:.0f} s, "
              f"threads: {os.environ.get('OMP_NUM_THREADS', 'default')}",
              "", "| variant | test PSNR (dB) | test SSIM | stage-2 time (s) | points | final train / val PSNR |",
              "|---|---|---|---|---|---|"]
@@ -136,13 +142,14 @@ def main() -> None:
                      f"{r['points']} | {h.get('train_psnr', float('nan')):.2f} / {h.get('val_psnr', float('nan')):.2f} |")
     table = "\n".join(lines)
     print(table)
-    out = RESULTS / f"neural_lego-{args.resolution}.json"
+    out = RESULTS / f"neural_{stem}-{args.resolution}.json"
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"resolution": args.resolution, "steps": args.steps, "geometry_seconds": geo_s,
+    config = args.config.relative_to(REPO) if args.config.is_relative_to(REPO) else args.config
+    out.write_text(json.dumps({"config": str(config), "resolution": args.resolution, "steps": args.steps, "geometry_seconds": geo_s,
                                "extra": args.extra, "threads": os.environ.get("OMP_NUM_THREADS"),
                                "rows": rows, "markdown": table}, indent=1))
-    fig = IMAGES / f"lego-{args.resolution}.png"
-    figure(rows, args.resolution, fig)
+    fig = IMAGES / f"{stem}-{args.resolution}.png"
+    figure(rows, f"{stem} {args.resolution}x{args.resolution}", fig)
     print(f"\nwrote {out} and {fig}")
 
 
