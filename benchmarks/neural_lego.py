@@ -88,15 +88,16 @@ def variant(name: str, ply: Path, args: argparse.Namespace, root: Path) -> dict:
 
 
 def figure(rows: list[dict], title: str, path: Path) -> None:
-    """Row 1: test view 0 of each variant and GT; row 2: train/val PSNR over steps."""
+    """Row 1: the first test view of each variant and GT; row 2: train/val PSNR over steps."""
+    first = Path(json.loads((Path(rows[0]["run"]) / "eval_test" / "per_view.json").read_text())["views"][0]["name"]).name
     fig = plt.figure(figsize=(3 * (len(rows) + 1), 6))
     for i, r in enumerate(rows):
         ax = fig.add_subplot(2, len(rows) + 1, i + 1)
-        ax.imshow(iio.imread(Path(r["run"]) / "eval_test" / "r_0.png"))
+        ax.imshow(iio.imread(Path(r["run"]) / "eval_test" / f"{first}.png"))
         ax.set_title(f"{r['name']}: {r['test_psnr']['mean']:.2f} dB", fontsize=9)
         ax.axis("off")
     ax = fig.add_subplot(2, len(rows) + 1, len(rows) + 1)
-    ax.imshow(iio.imread(Path(rows[0]["run"]) / "eval_test" / "r_0_gt.png"))
+    ax.imshow(iio.imread(Path(rows[0]["run"]) / "eval_test" / f"{first}_gt.png"))
     ax.set_title("ground truth", fontsize=9)
     ax.axis("off")
     ax = fig.add_subplot(2, 1, 2)
@@ -108,7 +109,7 @@ def figure(rows: list[dict], title: str, path: Path) -> None:
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=len(rows))
-    fig.suptitle(f"{title}: test view r_0 and train/val PSNR over steps")
+    fig.suptitle(f"{title}: test view {first} and train/val PSNR over steps")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

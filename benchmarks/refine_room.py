@@ -6,7 +6,12 @@ prints a table, writes ``benchmarks/results/refine_room.json`` and before/after 
 ``docs/images/refine/``.
 
     OMP_NUM_THREADS=2 python benchmarks/refine_room.py [--steps 150] [--width 64 --height 48]
-        [--estimators ht sampled] [--set key=value ...]
+        [--estimators ht sampled] [--set key=value ...] [--name refine_room]
+
+Pose errors are reported three ways (``nsplat.poses.pose_report``): absolute against the ground truth,
+after removing the common rigid offset of all cameras (the gauge: with a learnable scene, scene and
+cameras can move together without changing any image), and as relative pose errors over all camera
+pairs (gauge-free without any fitted alignment).
 
 ``--set`` passes further config overrides to both runs (the same budget for every estimator). Runs of
 estimators not named this time are kept in the JSON when its arguments match (so the estimators can
@@ -30,7 +35,7 @@ IMAGES = ROOT / "docs" / "images" / "refine"
 
 
 def run_one(estimator: str, args: argparse.Namespace) -> dict:
-    run_dir = ROOT / "runs" / f"bench-refine-room-{estimator}"
+    run_dir = ROOT / "runs" / f"bench-{args.name.replace('_', '-')}-{estimator}"
     overrides = [f"render.estimator={estimator}", f"optim.steps={args.steps}",
                  f"data.room.width={args.width}", f"data.room.height={args.height}",
                  f"data.room.frames={args.frames}", f"optim.decay_every={args.steps // 3}",
@@ -44,7 +49,7 @@ def run_one(estimator: str, args: argparse.Namespace) -> dict:
     return {"run_dir": str(run_dir.relative_to(ROOT)), "initial": init, "final": final, "overrides": overrides}
 
 
-def save_images(run_dir: Path, tag: str, frames: list[int]) -> None:
+def save_images(run_dir: Path, prefix: str, tag: str, frames: list[int]) -> None:
     from nsplat.data.room import RoomSpec, load_room  # noqa: F401 (same cache as the task)
     cfg = __import__("yaml").safe_load((run_dir / "config.yaml").read_text())
     spec = RoomSpec(**cfg["data"]["room"])
@@ -57,7 +62,7 @@ def save_images(run_dir: Path, tag: str, frames: list[int]) -> None:
         row = torch.cat([ref, before[f].clamp(0, 1), after[f].clamp(0, 1),
                          (before[f] - room.images[f]).abs().clamp(0, 1), (after[f] - room.images[f]).abs().clamp(0, 1)], 1)
         big = row.repeat_interleave(3, 0).repeat_interleave(3, 1)
-        iio.imwrite(IMAGES / f"room_{tag}_frame{f:02d}.png", (big.numpy() * 255).round().astype(np.uint8))
+        iio.imwrite(IMAGES / f"{prefix}_{tag}_frame{f:02d}.png", (big.numpy() * 255).round().astype(np.uint8))
 
 
 def main() -> None:
@@ -68,14 +73,17 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--estimators", nargs="+", default=["ht", "sampled"])
     p.add_argument("--set", nargs="*", default=[], help="extra config overrides for every run")
+    p.add_argument("--name", default="refine_room",
+                   help="study name: results in benchmarks/results/<name>.json, runs in runs/bench-<name>-<estimator>")
     args = p.parse_args()
-    path = RESULTS / "refine_room.json"
-    key = {k: v for k, v in vars(args).items() if k != "estimators"}
+    path = RESULTS / f"{args.name}.json"
+    prefix = "room" if args.name == "refine_room" else args.name
+    key = {k: v for k, v in vars(args).items() if k not in ("estimators", "name")}
     out = {"args": key, "runs": {}}
     results = {}
     for est in args.estimators:
         results[est] = run_one(est, args)
-        save_images(ROOT / results[est]["run_dir"], est, [0, args.frames // 2])
+        save_images(ROOT / results[est]["run_dir"], prefix, est, [0, args.frames // 2])
     if path.is_file():  # re-read now: another invocation may have written meanwhile
         old = json.loads(path.read_text())
         if old.get("args") == key:
@@ -87,13 +95,21 @@ def main() -> None:
           f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}"
     print(hdr)
     print("-" * len(hdr))
+    rows = []
     for est, r in out["runs"].items():
         i, f = r["initial"], r["final"]
+        rows.append(f"{est:>9} | " + " | ".join(
+            f"{i[k]:.4f} → {f[k]:.4f} (÷{i[k] / f[k]:.1f})" for k in
+            ("rot_deg_aligned", "trans_aligned", "rpe_rot_deg", "rpe_trans") if k in i and k in f)
+            + f" | gauge offset after: {f.get('gauge_rot_deg', float('nan')):.3f}° / {f.get('gauge_trans', float('nan')):.4f}")
+
         print(f"{est:>9} | {i['rot_deg']:11.3f} {f['rot_deg']:7.3f} {i['rot_deg'] / f['rot_deg']:5.1f} | "
               f"{i['trans']:12.4f} {f['trans']:7.4f} {i['trans'] / f['trans']:5.1f} | "
               f"{i['psnr']:6.2f}/{f['psnr']:6.2f} | {i['ssim']:6.3f}/{f['ssim']:6.3f} "
               f"{100 * (f['ssim'] / i['ssim'] - 1):6.1f} | {i['points']:5d}/{f['points']:5d} | "
               f"{f['seconds']:7.1f} | {f['peak_rss_mb']:7.0f}")
+    print("\ngauge-free pose errors, before → after: rot° aligned | trans aligned | RPE rot° | RPE trans")
+    print("\n".join(rows))
 
 
 if __name__ == "__main__":

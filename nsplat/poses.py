@@ -24,7 +24,11 @@ the renderer reach ξ through ``viewmats``. The optional focal correction multip
 ``exp(φ)`` (one ``φ`` per camera, or one shared by all), reaching ``Ks`` through the op's projection.
 
 Also here: random pose perturbations of a given size and rotation/translation pose errors, used to
-build and score refinement benchmarks.
+build and score refinement benchmarks. When the scene is learnable too, poses are only determined up
+to a common rigid motion of scene and cameras (the gauge), so besides the absolute errors against the
+ground truth there are two gauge-free scores: errors after removing the common rigid offset
+(:func:`align_to_reference`, like the aligned trajectory error of SLAM benchmarks) and relative pose
+errors over all camera pairs (:func:`relative_pose_errors`, no fitted alignment at all).
 """
 from __future__ import annotations
 
@@ -165,3 +169,58 @@ def pose_errors(viewmats: torch.Tensor, reference: torch.Tensor) -> tuple[torch.
     rot = torch.rad2deg(2.0 * torch.asin(chord.clamp(max=1.0)))
     trans = (camera_centres(V) - camera_centres(Vr)).norm(dim=-1)
     return rot, trans
+
+
+def align_to_reference(viewmats: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Remove the common rigid offset of cameras ``viewmats [B,4,4]`` relative to ``reference [B,4,4]``.
+
+    Each camera defines a world offset ``W_i = Vᵣ_i⁻¹ V_i`` (identity when it matches its reference); the
+    common offset ``W`` has the chordal mean of the ``W_i`` rotations (projection of their sum onto SO(3))
+    and the mean of their translations. Returns ``(viewmats W⁻¹ [B,4,4], W [4,4])`` (float64): the cameras
+    expressed in the reference's world frame, scored by :func:`pose_errors` as "aligned" errors.
+    """
+    V, Vr = viewmats.detach().double(), reference.detach().double().to(viewmats.device)
+    Wi = torch.linalg.inv(Vr) @ V
+    U, _, Vt = torch.linalg.svd(Wi[:, :3, :3].sum(0))
+    if torch.det(U @ Vt) < 0:
+        U = U.clone()
+        U[:, -1] = -U[:, -1]
+    W = torch.eye(4, dtype=V.dtype, device=V.device)
+    W[:3, :3] = U @ Vt
+    W[:3, 3] = Wi[:, :3, 3].mean(0)
+    return V @ torch.linalg.inv(W), W
+
+
+def relative_pose_errors(viewmats: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Relative pose errors over all ordered camera pairs ``i < j`` (gauge-free, no alignment).
+
+    For each pair the relative motion ``V_i V_j⁻¹`` is compared with ``Vᵣ_i Vᵣ_j⁻¹``: the rotation error in
+    degrees (as :func:`pose_errors`) and the distance between the two relative translations (world units).
+    Returns ``(rot_deg [P], trans [P])`` (float64) with ``P = B(B−1)/2``; empty for ``B < 2``.
+    """
+    V, Vr = viewmats.detach().double(), reference.detach().double().to(viewmats.device)
+    i, j = torch.triu_indices(V.shape[0], V.shape[0], offset=1, device=V.device)
+    rel = V[i] @ torch.linalg.inv(V[j])
+    rel_r = Vr[i] @ torch.linalg.inv(Vr[j])
+    chord = (rel[:, :3, :3] - rel_r[:, :3, :3]).flatten(1).norm(dim=-1) / (2.0 * math.sqrt(2.0))
+    rot = torch.rad2deg(2.0 * torch.asin(chord.clamp(max=1.0)))
+    trans = (rel[:, :3, 3] - rel_r[:, :3, 3]).norm(dim=-1)
+    return rot, trans
+
+
+def pose_report(viewmats: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
+    """Mean pose errors of ``viewmats [B,4,4]`` against ``reference [B,4,4]``: absolute (``rot_deg``,
+    ``trans``, with maxima), after removing the common rigid offset (``rot_deg_aligned``,
+    ``trans_aligned``, plus the offset's size ``gauge_rot_deg``/``gauge_trans``) and over camera pairs
+    (``rpe_rot_deg``, ``rpe_trans``)."""
+    rot, tr = pose_errors(viewmats, reference)
+    aligned, W = align_to_reference(viewmats, reference)
+    rot_a, tr_a = pose_errors(aligned, reference)
+    rpe_r, rpe_t = relative_pose_errors(viewmats, reference)
+    gauge_r, _ = pose_errors(W[None], torch.eye(4, dtype=W.dtype, device=W.device)[None])
+    out = {"rot_deg": float(rot.mean()), "trans": float(tr.mean()), "rot_deg_max": float(rot.max()),
+           "trans_max": float(tr.max()), "rot_deg_aligned": float(rot_a.mean()), "trans_aligned": float(tr_a.mean()),
+           "gauge_rot_deg": float(gauge_r[0]), "gauge_trans": float(W[:3, 3].norm())}
+    if rpe_r.numel():
+        out.update(rpe_rot_deg=float(rpe_r.mean()), rpe_trans=float(rpe_t.mean()))
+    return out

@@ -157,3 +157,31 @@ def test_ht_gradient_is_unbiased_in_additive_mode():
         assert bool(ok.all()), (name, float(((mean - dense[i]).abs() - gap).max()), float(se.max()))
         # and the estimator's mean is the exact SPS expectation (no gap allowance)
         assert bool(((mean - expected[i]).abs() <= 4 * se + roundoff).all()), name
+
+
+@pytest.mark.parametrize("shape,N", [((1, 4, 5, 3), 7), ((3, 8, 9, 5), 50), ((2, 1, 1, 4), 1), ((2, 3, 3, 2), 0)])
+def test_backward_point_order_native_matches_definition(shape, N):
+    """The backward's per-point order (native counting sort on the CPU) equals its definition: filled slots
+    sorted by (point, camera, pixel, slot), with per-point segment offsets; and equals the device-sort path."""
+    from nsplat.ops.functional import _entries_by_point, _entries_by_point_sorted
+
+    g = torch.Generator().manual_seed(sum(shape) + N)
+    idx = torch.randint(-1, max(N, 1), shape, generator=g, dtype=torch.int32)
+    if N == 0:
+        idx.fill_(-1)
+    entries, seg = _entries_by_point(idx, N)
+    flat = idx.reshape(-1).tolist()
+    expected = sorted((k, s) for s, k in enumerate(flat) if k >= 0)  # s enumerates (camera, pixel, slot)
+    assert entries.dtype == torch.long and entries.tolist() == [s for _, s in expected]
+    counts = [sum(1 for k in flat if k == p) for p in range(N)]
+    assert seg.tolist() == [sum(counts[:p]) for p in range(N + 1)]
+    ref_entries, ref_seg = _entries_by_point_sorted(idx, N)
+    assert torch.equal(entries, ref_entries) and torch.equal(seg, ref_seg)
+
+
+def test_backward_point_order_rejects_out_of_range_point():
+    from nsplat.ops.build import backend
+
+    idx = torch.tensor([[[[0, 5]]]], dtype=torch.int32)
+    with pytest.raises(RuntimeError, match="num_points"):
+        backend(torch.device("cpu")).entries_by_point(idx, 3)

@@ -83,3 +83,38 @@ def test_many_samples_and_channels():
     V, K = make_cameras(3, 8, 8, dtype=torch.float32)
     out = _run(sc, V, K, 8, 8, samples=200)
     assert out.image.shape == (3, 8, 8, 33)
+
+
+@pytest.mark.parametrize("big", [1e20, 1e30])
+def test_culled_points_with_huge_coordinates_or_scales_leave_gradients_finite(big):
+    """Points outside [near, far] with float32-overflowing lateral coordinates or scales change nothing:
+    the image equals the scene without them and every gradient (cameras' included) stays finite."""
+    torch.manual_seed(0)
+    N = 12
+    means = torch.randn(N, 3) * 0.3
+    means[:, 2] += 3.0
+    normals = torch.tensor([0.0, 0.0, -1.0]).expand(N, 3).clone()
+    scales = torch.full((N, 2), 0.1)
+    opac, feats = torch.full((N,), 0.8), torch.rand(N, 3)
+    extra_means = torch.tensor([[big, -big, -5.0], [0.1, 0.2, -3.0]])   # behind the camera
+    extra_scales = torch.tensor([[0.1, 0.1], [big, big]])
+    K = torch.tensor([[[30.0, 0.0, 16.0], [0.0, 30.0, 16.0], [0.0, 0.0, 1.0]]])
+
+    def run(with_extra: bool):
+        m = torch.cat([means, extra_means]) if with_extra else means
+        s = torch.cat([scales, extra_scales]) if with_extra else scales
+        n = torch.cat([normals, normals[:2]]) if with_extra else normals
+        o = torch.cat([opac, opac[:2]]) if with_extra else opac
+        f = torch.cat([feats, feats[:2]]) if with_extra else feats
+        ps = [t.clone().requires_grad_() for t in (m, n, s, o, f)]
+        V = torch.eye(4)[None].clone().requires_grad_()
+        out = splat(*ps, V, K, 32, 32, samples=8, seed=3)
+        out.image.sum().backward()
+        return out.image.detach(), [p.grad for p in ps], V.grad
+
+    img, grads, gV = run(True)
+    ref, ref_grads, ref_gV = run(False)
+    assert all(torch.isfinite(g).all() for g in grads) and torch.isfinite(gV).all()
+    torch.testing.assert_close(img, ref, rtol=0, atol=1e-6)
+    assert torch.count_nonzero(grads[0][N:]) == 0 and torch.count_nonzero(grads[2][N:]) == 0
+    torch.testing.assert_close(gV, ref_gV, rtol=1e-5, atol=1e-5)

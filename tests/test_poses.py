@@ -7,7 +7,8 @@ import torch
 
 from nsplat.cameras import intrinsics, look_at
 from nsplat.ops import splat_dense
-from nsplat.poses import CameraCorrection, camera_centres, perturb_viewmats, pose_errors
+from nsplat.poses import (CameraCorrection, align_to_reference, camera_centres, perturb_viewmats, pose_errors,
+                          pose_report, relative_pose_errors)
 
 
 def _scene():
@@ -101,6 +102,55 @@ def test_perturbation_has_requested_size():
     rot, tr = pose_errors(P, V)
     assert torch.allclose(rot, torch.full_like(rot, 2.0), atol=1e-4)
     assert torch.allclose(tr, torch.full_like(tr, 0.05), atol=1e-6)
+
+
+def _cameras64(count: int) -> torch.Tensor:
+    """The rig of :func:`_cameras` built in float64 (orthonormal to rounding), ``[count,4,4]``."""
+    eye = torch.tensor([[-0.6, -0.5, -1.6], [-0.2, -0.6, -1.5], [-0.7, -0.1, -1.4]], dtype=torch.float64)[:count]
+    target = torch.tensor([0.2, 0.3, 0.6], dtype=torch.float64).expand_as(eye)
+    return look_at(eye, target, torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+
+
+def _rigid(axis: list[float], deg: float, t: list[float]) -> torch.Tensor:
+    """A world motion ``[4,4]`` float64: rotation by ``deg`` about ``axis`` then translation ``t``."""
+    from kornia.geometry.liegroup import So3
+    w = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0) * math.radians(deg)
+    W = torch.eye(4, dtype=torch.float64)
+    W[:3, :3] = So3.exp(w).matrix()
+    W[:3, 3] = torch.tensor(t, dtype=torch.float64)
+    return W
+
+
+def test_common_rigid_offset_is_removed_by_alignment_and_invisible_to_relative_errors():
+    V = _cameras64(3)
+    assert V.dtype == torch.float64
+    W = _rigid([0.3, -1.0, 0.2], 1.5, [0.04, -0.02, 0.03])
+    moved = V @ W  # the same rig seen from a world moved by W⁻¹: every camera is off by the same motion
+    rot, tr = pose_errors(moved, V)
+    assert float(rot.min()) == pytest.approx(1.5, abs=1e-9)  # a world rotation is a camera rotation of the same angle
+    aligned, W_est = align_to_reference(moved, V)
+    torch.testing.assert_close(W_est, W, atol=1e-12, rtol=0)
+    rot_a, tr_a = pose_errors(aligned, V)
+    assert float(rot_a.max()) < 1e-6 and float(tr_a.max()) < 1e-12
+    rpe_r, rpe_t = relative_pose_errors(moved, V)
+    assert rpe_r.shape == (3,) and float(rpe_r.max()) < 1e-6 and float(rpe_t.max()) < 1e-12
+    report = pose_report(moved, V)
+    assert report["gauge_rot_deg"] == pytest.approx(1.5, abs=1e-9)
+    assert report["gauge_trans"] == pytest.approx(float(W[:3, 3].norm()), abs=1e-12)
+
+
+def test_relative_pose_error_of_one_rotated_camera_is_its_rotation():
+    V = _cameras64(2)
+    R = _rigid([0.0, 1.0, 0.0], 2.0, [0.0, 0.0, 0.0])
+    moved = V.clone()
+    moved[1] = R @ V[1]  # camera 1 turned by 2° about its own optical centre
+    rot, tr = relative_pose_errors(moved, V)
+    assert float(rot[0]) == pytest.approx(2.0, abs=1e-9)
+    # V0 V1'⁻¹ = V0 V1⁻¹ Rᵀ: the relative translation is unchanged (R fixes the origin of camera 1)
+    assert float(tr[0]) < 1e-12
+    # aligned errors spread the single error over both cameras: the mean offset is half the rotation
+    rep = pose_report(moved, V)
+    assert rep["rot_deg_aligned"] == pytest.approx(1.0, abs=1e-3)
 
 
 def test_bad_arguments_raise():

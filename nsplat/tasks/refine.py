@@ -40,7 +40,7 @@ from nsplat.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from nsplat.config import ConfigError
 from nsplat.data.room import RoomSpec, load_room
 from nsplat.filtering import FilterConfig, improbable, point_errors
-from nsplat.poses import CameraCorrection, pose_errors, perturb_viewmats
+from nsplat.poses import CameraCorrection, perturb_viewmats, pose_errors, pose_report
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.sh import SHLighting
@@ -510,9 +510,7 @@ def evaluate_state(model: Refiner, seed: int, batch: int) -> tuple[dict[str, Any
                            "points": model.scene.num_points}
     if fr.viewmats_gt is not None:
         V, K = model.camera(torch.arange(fr.count, device=fr.images.device))
-        rot, tr = pose_errors(V, fr.viewmats_gt)
-        out.update(rot_deg=float(rot.mean()), trans=float(tr.mean()), rot_deg_max=float(rot.max()),
-                   trans_max=float(tr.max()))
+        out.update(pose_report(V, fr.viewmats_gt))
         if model.cameras is not None and model.cameras.log_focal is not None:
             out["focal_scale"] = torch.exp(model.cameras.log_focal).tolist()
     return out, img

@@ -358,6 +358,35 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
   return out;
 }
 
+// The backward's per-point order: flat ids of the filled slots of ``indices`` [B,H,W,m] (int32, -1 = empty)
+// grouped by point with a stable counting sort, so within a point the slots keep their (camera, pixel, slot)
+// order. O(slots + N) time, extra memory 8 bytes per filled slot (the output) + 8 bytes per point.
+// Returns {entries int64 [E], seg int64 [N+1]}: point k's slots are entries[seg[k] .. seg[k+1]).
+std::vector<at::Tensor> entries_by_point(at::Tensor indices, int64_t num_points) {
+  check_cpu({indices});
+  TORCH_CHECK(indices.scalar_type() == at::kInt, "entries_by_point: indices must be int32, got ", indices.scalar_type());
+  TORCH_CHECK(num_points >= 0, "entries_by_point: num_points must be >= 0, got ", num_points);
+  const int32_t* idx = indices.data_ptr<int32_t>();
+  const int64_t S = indices.numel();
+  at::Tensor seg = at::zeros({num_points + 1}, indices.options().dtype(at::kLong));
+  int64_t* sg = seg.data_ptr<int64_t>();
+  for (int64_t s = 0; s < S; ++s) {
+    const int32_t k = idx[s];
+    if (k < 0) continue;
+    TORCH_CHECK(k < num_points, "entries_by_point: slot ", s, " holds point ", k, " >= num_points ", num_points);
+    ++sg[k + 1];
+  }
+  for (int64_t k = 0; k < num_points; ++k) sg[k + 1] += sg[k];
+  at::Tensor entries = at::empty({sg[num_points]}, seg.options());
+  int64_t* ent = entries.data_ptr<int64_t>();
+  std::vector<int64_t> cursor(sg, sg + num_points);
+  for (int64_t s = 0; s < S; ++s) {
+    const int32_t k = idx[s];
+    if (k >= 0) ent[cursor[k]++] = s;
+  }
+  return {entries, seg};
+}
+
 }  // namespace nsplat
 
 #include "scatter_cpu.h"  // composite_backward_scatter (non-deterministic backward)
@@ -367,6 +396,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
   m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
   m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
+  m.def("entries_by_point", &nsplat::entries_by_point, "Filled slots grouped by point, stable counting sort (CPU)");
   m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
         "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");
 }
