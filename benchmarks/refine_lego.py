@@ -146,6 +146,10 @@ def main() -> None:
           f"trans {i['trans']:.4f} -> {f['trans']:.4f} (/{i['trans'] / f['trans']:.1f}), "
           f"PSNR {i['psnr']:.2f} -> {f['psnr']:.2f}, SSIM {i['ssim']:.3f} -> {f['ssim']:.3f}, "
           f"{f['seconds']:.0f} s, peak RSS {f['peak_rss_mb']:.0f} MB; total {total:.0f} s")
+    print(f"  relative pose error: rot {i['rpe_rot_deg']:.3f} -> {f['rpe_rot_deg']:.3f} deg "
+          f"(/{i['rpe_rot_deg'] / f['rpe_rot_deg']:.1f}), trans {i['rpe_trans']:.4f} -> {f['rpe_trans']:.4f} "
+          f"(/{i['rpe_trans'] / f['rpe_trans']:.1f}); common offset after {f['gauge_rot_deg']:.3f} deg / "
+          f"{f['gauge_trans']:.4f}")
 
 
 if __name__ == "__main__":

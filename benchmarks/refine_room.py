@@ -9,9 +9,9 @@ prints a table, writes ``benchmarks/results/refine_room.json`` and before/after 
         [--estimators ht sampled] [--set key=value ...] [--name refine_room]
 
 Pose errors are reported three ways (``nsplat.poses.pose_report``): absolute against the ground truth,
-after removing the common rigid offset of all cameras (the gauge: with a learnable scene, scene and
-cameras can move together without changing any image), and as relative pose errors over all camera
-pairs (gauge-free without any fitted alignment).
+after removing the rigid offset common to all cameras (with a learnable scene, scene and cameras can
+move together without changing any image; docs/results.md measures how much of that offset is this
+gauge freedom), and as relative pose errors over all camera pairs (no fitted alignment at all).
 
 ``--set`` passes further config overrides to both runs (the same budget for every estimator). Runs of
 estimators not named this time are kept in the JSON when its arguments match (so the estimators can
@@ -101,14 +101,15 @@ def main() -> None:
         rows.append(f"{est:>9} | " + " | ".join(
             f"{i[k]:.4f} → {f[k]:.4f} (÷{i[k] / f[k]:.1f})" for k in
             ("rot_deg_aligned", "trans_aligned", "rpe_rot_deg", "rpe_trans") if k in i and k in f)
-            + f" | gauge offset after: {f.get('gauge_rot_deg', float('nan')):.3f}° / {f.get('gauge_trans', float('nan')):.4f}")
-
+            + f" | common offset after: {f.get('gauge_rot_deg', float('nan')):.3f}° / "
+              f"{f.get('gauge_trans', float('nan')):.4f}")
         print(f"{est:>9} | {i['rot_deg']:11.3f} {f['rot_deg']:7.3f} {i['rot_deg'] / f['rot_deg']:5.1f} | "
               f"{i['trans']:12.4f} {f['trans']:7.4f} {i['trans'] / f['trans']:5.1f} | "
               f"{i['psnr']:6.2f}/{f['psnr']:6.2f} | {i['ssim']:6.3f}/{f['ssim']:6.3f} "
               f"{100 * (f['ssim'] / i['ssim'] - 1):6.1f} | {i['points']:5d}/{f['points']:5d} | "
               f"{f['seconds']:7.1f} | {f['peak_rss_mb']:7.0f}")
-    print("\ngauge-free pose errors, before → after: rot° aligned | trans aligned | RPE rot° | RPE trans")
+    print("\npose errors without the common offset, before → after: rot° aligned | trans aligned | RPE rot° | "
+          "RPE trans")
     print("\n".join(rows))
 
 

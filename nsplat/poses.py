@@ -211,8 +211,9 @@ def relative_pose_errors(viewmats: torch.Tensor, reference: torch.Tensor) -> tup
 def pose_report(viewmats: torch.Tensor, reference: torch.Tensor) -> dict[str, float]:
     """Mean pose errors of ``viewmats [B,4,4]`` against ``reference [B,4,4]``: absolute (``rot_deg``,
     ``trans``, with maxima), after removing the common rigid offset (``rot_deg_aligned``,
-    ``trans_aligned``, plus the offset's size ``gauge_rot_deg``/``gauge_trans``) and over camera pairs
-    (``rpe_rot_deg``, ``rpe_trans``)."""
+    ``trans_aligned``, plus the offset's size ``gauge_rot_deg``/``gauge_trans``, named for the gauge
+    freedom it includes when the scene is learnable) and over camera pairs (``rpe_rot_deg``,
+    ``rpe_trans``)."""
     rot, tr = pose_errors(viewmats, reference)
     aligned, W = align_to_reference(viewmats, reference)
     rot_a, tr_a = pose_errors(aligned, reference)
