@@ -89,7 +89,7 @@ def _entries_by_point(indices: torch.Tensor, N: int) -> tuple[torch.Tensor, torc
 
     A backend with a native stable counting sort (the CPU one) uses it: 8 bytes per filled slot + 8 per
     point. Otherwise (CUDA): a stable device sort of the int32 point ids, :func:`_entries_by_point_sorted`
-    (its index output and the gathered ids: 16 bytes per filled slot at the peak)."""
+    (positions, ids, sort indices and the gathered order: ≈ 28 bytes per filled slot at the peak)."""
     native = getattr(backend(indices.device), "entries_by_point", None)
     if native is not None:
         entries, seg = native(indices.contiguous(), N)
