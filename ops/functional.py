@@ -12,7 +12,8 @@ import torch
 from .build import backend
 from .output import SplatOutput
 from .projection import Projected, project
-from .validation import COMPOSITES, ESTIMATORS, check_deterministic, check_geometry, check_sampling, check_settings
+from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_deterministic, check_geometry, check_sampling,
+                         check_settings, inclusion_for, native_estimator)
 
 
 def _native_inputs(proj: Projected) -> list[torch.Tensor]:
@@ -22,8 +23,9 @@ def _native_inputs(proj: Projected) -> list[torch.Tensor]:
 
 @torch.no_grad()
 def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, samples: int = 40, eps: float = 0.01,
-           seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3) -> tuple[torch.Tensor, ...]:
-    """Draw each pixel's SPS sample of ``samples`` points (DESIGN.md §1 "Sampling").
+           seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3, inclusion: str = "threshold",
+           stratified: bool = False) -> tuple[torch.Tensor, ...]:
+    """Draw each pixel's SPS sample of ``samples`` points (docs/method.md "Sampling").
 
     Args:
         proj: projected surfels of ``B`` cameras (:func:`nsplat.ops.project`).
@@ -32,15 +34,27 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
             differs from the exact SPS sample. seed: RNG seed (``u`` is a hash of seed, camera, pixel,
             point). hermite_order: maximum Hermite order per dimension (0 disables expansions).
             hermite_tol: relative truncation bound a node's expansion must meet.
+            inclusion: which π to return. "threshold" (default): ``π_k = min(1, λ_k·ξ_(m+1))`` with
+            ``ξ_(m+1)`` the pixel's (m+1)-th smallest key ``u/λ`` — the exact probability of k's inclusion
+            given the other points' draws (priority sampling), so Horvitz–Thompson sums weighted by
+            ``1/π`` are exactly unbiased. "pips": the πps targets ``min(1, c·λ_k)`` with ``Σπ = m``,
+            which SPS meets only approximately (a small bias at small m and skewed λ).
+            stratified: False (default): independent uniforms per (camera, pixel, point). True: one
+            uniform per (camera, point) shifted per pixel by a rank-1 lattice, ``u = frac(h_k + φ(x))``:
+            every pixel's sample is still an exact SPS draw with the same marginals (so estimators stay
+            unbiased), but a point's draws are stratified across neighbouring pixels.
 
     Returns:
         ``indices [B,H,W,m]`` int32 (front to back, -1 empty), ``probs [B,H,W,m]`` (π, 0 empty),
         ``total [B,H,W,1]`` (Λ̂; 0 below the floor), ``work [B,H,W,1]`` int32 exact kernel evaluations.
     """
+    if inclusion not in INCLUSIONS:
+        raise ValueError(f"inclusion: expected one of {INCLUSIONS}, got {inclusion!r}")
     mu, con, amp, nrm, off, zc = _native_inputs(proj)
     sig2 = proj.sigma2.contiguous()
     return tuple(backend(mu.device).sample(mu, con, amp, sig2, nrm, off, zc, Ks.detach().contiguous(), width,
-                                           height, samples, float(eps), seed, hermite_order, float(hermite_tol)))
+                                           height, samples, float(eps), seed, hermite_order, float(hermite_tol),
+                                           INCLUSIONS.index(inclusion), bool(stratified)))
 
 
 class _Composite(torch.autograd.Function):
@@ -115,7 +129,8 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     """Composite a given per-pixel sample; differentiable w.r.t. ``proj``, ``features`` and ``background``.
 
     Slots are blended in the given order (front to back; :func:`sample` orders them by per-pixel
-    depth). The backward applies the estimator's weight to every sampled term: ``"ht"`` 1/π,
+    depth). The backward applies the estimator's weight to every sampled term: ``"ht"`` and ``"ht-pips"``
+    1/π (with whatever π is given: the two differ only in which π :func:`sample` returns for them),
     ``"paper"`` 1/(π·|N_k|) with |N_k| the number of pixels of the camera where k was sampled,
     ``"sampled"`` 1. The per-pixel depth's dependence on ``Ks`` (through the pixel rays) is not
     differentiated; ``Ks`` gets its gradient through the projection.
@@ -123,7 +138,8 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     Args:
         proj: projected surfels ``[B,N,...]``. features: ``[N,C]``. Ks: ``[B,3,3]``.
         indices: ``[B,H,W,m]`` int32. probs: ``[B,H,W,m]`` inclusion probabilities (dtype of proj).
-        background: ``[C]`` (zeros if None). composite: "alpha" | "additive". estimator: "ht" | "paper" | "sampled".
+        background: ``[C]`` (zeros if None). composite: "alpha" | "additive".
+        estimator: "ht" | "ht-pips" | "paper" | "sampled".
         deterministic: True (default): fixed-order backward, gradients bitwise identical across runs and
             thread counts. False: single-pass atomic-scatter backward on CPU (faster, equal up to
             rounding, summation order varies); on CUDA only the deterministic backward exists and
@@ -143,7 +159,7 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {proj.means2d.dtype}, "
                          f"got {list(probs.shape)} {probs.dtype}")
     bg = background if background is not None else features.new_zeros(features.shape[1])
-    return _Composite.apply(COMPOSITES.index(composite), ESTIMATORS.index(estimator), deterministic, Ks,
+    return _Composite.apply(COMPOSITES.index(composite), native_estimator(estimator), deterministic, Ks,
                             indices.contiguous(),
                             probs.contiguous(), proj.means2d, proj.conics, proj.amps, proj.normals_cam,
                             proj.plane_offsets, proj.depths, features, bg)
@@ -153,12 +169,13 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
           features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,
           samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
           background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10, lowpass: float = 1.0,
-          seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True) -> SplatOutput:
+          seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
+          stratified: bool = False) -> SplatOutput:
     """Render surfel features by EWA surface splatting with per-pixel Poisson sampling (unbiased backward).
 
     For every camera and pixel, a sequential Poisson sample of ``samples`` points is drawn with size
     measure ``λ_k(x) = α_k(x)`` (untruncated kernels), sorted by per-pixel depth, composited, and
-    backpropagated with the chosen estimator (DESIGN.md §1).
+    backpropagated with the chosen estimator (docs/method.md).
 
     Conventions: OpenCV camera (x right, y down, z forward), ``viewmats`` world→camera, ``Ks`` in
     pixels, pixel centres at ``(col + 0.5, row + 0.5)``, images ``[B,H,W,C]``. Splat alpha is the EWA
@@ -171,8 +188,14 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
         opacities: ``[N]`` in [0, 1]. features: ``[N,C]`` any C >= 1 (RGB or learned, signed).
         viewmats: ``[B,4,4]``. Ks: ``[B,3,3]``. width, height: image size (>= 1).
         samples: per-pixel sample size m (>= 1). eps: probability bound that a pixel's sample differs
-            from exact SPS (0 < eps <= 1). estimator: "ht" (Horvitz–Thompson, default), "paper"
-            (eq. 3 as printed: HT / |N_k|), "sampled" (plain gradient through the sample, biased).
+            from exact SPS (0 < eps <= 1).
+        estimator: "ht" (default): Horvitz–Thompson weights 1/π with the exact conditional inclusion
+            probabilities of priority sampling, ``π = min(1, λ·ξ_(m+1))``; with additive compositing
+            the image and every gradient are exactly unbiased estimates of the dense ones (up to the
+            ε-search and the documented floors). "ht-pips": 1/π with the πps targets (SPS meets them
+            only approximately: biased at small m, lower variance). "paper": eq. 3 as printed
+            (HT / |N_k|, πps). "sampled": plain gradient through the sample (biased). With alpha
+            compositing no estimator is unbiased (the transmittance is a product over the sample).
         composite: "alpha" (front-to-back blending) or "additive" (HT-weighted sum, no occlusion).
         background: ``[C]`` differentiable background (zeros if None). near, far: clipping on the centre
             depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed.
@@ -181,6 +204,7 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
             gradients (fixed-order per-point gather). False selects the faster single-pass CPU backward
             that scatters with atomics (equal up to float rounding). CUDA has only the deterministic
             backward; ``False`` on CUDA tensors silently uses it.
+        stratified: stratified uniforms across pixels (see :func:`sample`); off by default.
 
     Returns:
         :class:`SplatOutput`: ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``,
@@ -190,11 +214,12 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
     check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
                    background=background, C=C, dtype=means.dtype, device=means.device)
     check_sampling(samples=samples, eps=eps, estimator=estimator, seed=seed, hermite_order=hermite_order,
-                   hermite_tol=hermite_tol)
+                   hermite_tol=hermite_tol, stratified=stratified)
     check_deterministic(deterministic)
     proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass)
     indices, probs, total, work = sample(proj, Ks, width, height, samples=samples, eps=eps, seed=seed,
-                                         hermite_order=hermite_order, hermite_tol=hermite_tol)
+                                         hermite_order=hermite_order, hermite_tol=hermite_tol,
+                                         inclusion=inclusion_for(estimator), stratified=stratified)
     image, alpha, depth = composite_sample(proj, features, Ks, indices, probs, background=background,
                                                  composite=composite, estimator=estimator,
                                                  deterministic=deterministic)

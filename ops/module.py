@@ -23,12 +23,14 @@ class Splatter(nn.Module):
 
     def __init__(self, samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
                  near: float = 0.01, far: float = 1e10, lowpass: float = 1.0, base_seed: int = 0,
-                 hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True) -> None:
+                 hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
+                 stratified: bool = False) -> None:
         super().__init__()
         self.samples, self.eps, self.estimator, self.composite = samples, eps, estimator, composite
         self.near, self.far, self.lowpass, self.base_seed = near, far, lowpass, base_seed
         self.hermite_order, self.hermite_tol = hermite_order, hermite_tol
         self.deterministic = deterministic  # False: faster atomic-scatter CPU backward (see splat)
+        self.stratified = stratified  # stratified uniforms across pixels (see splat)
         self.register_buffer("calls", torch.zeros((), dtype=torch.long), persistent=True)
 
     def forward(self, means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -42,7 +44,7 @@ class Splatter(nn.Module):
                      eps=self.eps, estimator=self.estimator, composite=self.composite, background=background,
                      near=self.near, far=self.far, lowpass=self.lowpass, seed=seed,
                      hermite_order=self.hermite_order, hermite_tol=self.hermite_tol,
-                     deterministic=self.deterministic)
+                     deterministic=self.deterministic, stratified=self.stratified)
 
     def extra_repr(self) -> str:
         return (f"samples={self.samples}, eps={self.eps}, estimator={self.estimator!r}, "

@@ -10,7 +10,12 @@ import numbers
 
 import torch
 
-ESTIMATORS = ("ht", "paper", "sampled")
+#: Gradient estimators (docs/op.md "Estimators"): "ht" Horvitz–Thompson with the priority-sampling
+#: threshold probabilities (exactly unbiased in additive mode), "ht-pips" Horvitz–Thompson with the πps
+#: target probabilities (slightly biased), "paper" eq. 3 as printed, "sampled" no reweighting.
+ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
+#: Inclusion probabilities the sampler returns: exact conditional (priority threshold) or πps targets.
+INCLUSIONS = ("threshold", "pips")
 COMPOSITES = ("alpha", "additive")
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
@@ -121,8 +126,20 @@ def check_settings(*, width, height, near, far, lowpass, composite, background, 
         _finite("background", background)
 
 
-def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol) -> None:
+def inclusion_for(estimator: str) -> str:
+    """The inclusion probabilities an estimator weights by: "threshold" for "ht", "pips" otherwise."""
+    return "threshold" if estimator == "ht" else "pips"
+
+
+def native_estimator(estimator: str) -> int:
+    """The native estimator id (csrc/core/common.h ``Estimator``): both HT variants weight by 1/π."""
+    return {"ht": 0, "ht-pips": 0, "paper": 1, "sampled": 2}[estimator]
+
+
+def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol, stratified=False) -> None:
     """Check the sampler and estimator settings."""
+    if not isinstance(stratified, bool):
+        raise TypeError(f"stratified: expected a bool, got {type(stratified).__name__}")
     _int("samples", samples, 1)
     e = _real("eps", eps)
     if not 0 < e <= 1:

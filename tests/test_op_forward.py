@@ -4,8 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nsplat.ops import Splatter, project, splat, splat_dense
-from nsplat.ops.reference import size_measures, sps_expectation_weights
+from nsplat.ops import Splatter, splat, splat_dense
 from tests.conftest import make_cameras, make_scene
 
 W, H = 20, 16
@@ -45,24 +44,30 @@ def test_error_shrinks_as_samples_grow():
     assert errors[-1] < 0.25 * errors[0], errors
 
 
-def test_additive_forward_mean_matches_exact_sps_expectation():
-    """Additive mode is a Horvitz–Thompson sum: its mean over seeds equals its exact expectation under SPS
-    (computed from exact inclusion probabilities) within 4 standard errors, for every pixel and channel."""
-    w, h, m, R = 12, 10, 4, 300
+@pytest.mark.parametrize("estimator", ["ht", "ht-pips"])
+def test_additive_forward_mean_vs_dense(estimator):
+    """Additive mode is a Horvitz–Thompson sum. With the threshold weights ("ht") its mean over 4000 draws
+    equals the dense image (exactly unbiased): every pixel and channel within the family-wise bound of
+    360 t-statistics, mean z² ≈ 1. With the πps weights ("ht-pips") the same comparison detects the bias
+    (SPS meets the πps targets only approximately, and the certainty units are solved per sample)."""
+    w, h, m, R = 12, 10, 4, 40
     sc = make_scene(16, 3, dtype=torch.float64, spread=0.3)
     V, K = make_cameras(1, w, h, dtype=torch.float64)
-    args = (sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"], V, K, w, h)
+    args = (sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"])
     bg = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
-    proj = project(*args[:4], V, K, near=0.01, far=1e10, lowpass=1.0)
-    lam = size_measures(proj, 0, w, h)
-    ratio = sps_expectation_weights(lam, m)
-    expected = bg + (ratio * lam) @ sc["features"] - (ratio * lam).sum(1, keepdim=True) * bg
-    outs = torch.stack([splat(*args, samples=m, composite="additive", eps=1e-4, seed=s, background=bg).image[0]
-                        for s in range(R)]).reshape(R, -1, 3)
+    dense = splat_dense(*args, V, K, w, h, composite="additive", background=bg).image[0].reshape(-1, 3)
+    # batch means: each call renders `per` copies of the camera (independent streams), R group means
+    per = 100
+    Vb, Kb = V.expand(per, 4, 4).contiguous(), K.expand(per, 3, 3).contiguous()
+    outs = torch.stack([splat(*args, Vb, Kb, w, h, samples=m, composite="additive", eps=1e-6, seed=s,
+                              background=bg, estimator=estimator).image.mean(0) for s in range(R)]).reshape(R, -1, 3)
     mean, se = outs.mean(0), outs.std(0) / R ** 0.5
-    assert torch.all((mean - expected).abs() <= 4 * se + 1e-12), float(((mean - expected).abs() / se).max())
-    dense = splat_dense(*args, composite="additive", background=bg).image[0].reshape(-1, 3)
-    assert torch.allclose(expected, dense, atol=0.05), "SPS-vs-πps gap larger than expected on this scene"
+    z = (mean - dense) / (se + 1e-300)
+    zmax, z2 = float(z.abs().max()), float((z ** 2).mean())
+    if estimator == "ht":
+        assert zmax <= 5.0 and z2 <= 1.5, (zmax, z2)  # family-wise ~0.5 % for 360 t(39) statistics
+    else:
+        assert zmax > 8.0 and z2 > 2.0, (zmax, z2)
 
 
 def test_module_wrapper_and_any_channel_count():

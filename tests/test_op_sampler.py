@@ -111,7 +111,7 @@ def test_pixels_below_floor_are_empty_and_show_background():
 
 def test_inclusion_frequencies_match_exact_sps_and_pips_gap_is_measured():
     """Calibration: over many seeds the inclusion frequency of each point matches the exact SPS inclusion
-    probability (binomial 4σ), and the returned π equals the πps probability; the SPS-vs-πps gap (Ohlsson)
+    probability (binomial 4σ), and the returned π (``inclusion="pips"``) equals the πps probability; the SPS-vs-πps gap (Ohlsson)
     is measured and bounded."""
     N, m, R = 14, 3, 600
     _, _, K, proj = _setup(N, seed=21, B=1, spread=0.15, scale=(0.05, 0.1))
@@ -120,7 +120,7 @@ def test_inclusion_frequencies_match_exact_sps_and_pips_gap_is_measured():
     counts = np.zeros((len(pixels), N))
     pis = np.zeros((len(pixels), N))
     for seed in range(R):
-        idx, probs, _, _ = sample(proj, K, W, H, samples=m, eps=1e-4, seed=seed)
+        idx, probs, _, _ = sample(proj, K, W, H, samples=m, eps=1e-4, seed=seed, inclusion="pips")
         for i, p in enumerate(pixels):
             row = idx[0].reshape(-1, m)[p].numpy()
             pr = probs[0].reshape(-1, m)[p].double().numpy()
@@ -137,3 +137,36 @@ def test_inclusion_frequencies_match_exact_sps_and_pips_gap_is_measured():
         gap = np.abs(exact - pips)
         # Ohlsson: SPS approximates πps; on this pixel the gap is a few percent of π at most
         assert gap.max() < 0.05 and np.abs(exact.sum() - m) < 1e-9
+
+
+@pytest.mark.parametrize("stratified", [False, True])
+def test_threshold_probabilities_equal_priority_weights_of_exact_sps(stratified):
+    """``inclusion="threshold"`` (the default) returns ``π_k = min(1, λ_k·ξ_(m+1))`` with ``ξ_(m+1)`` the
+    (m+1)-th smallest key of the exact SPS draw (same RNG, stratified or not), for every sampled point;
+    π = 1 where the sample holds every point with λ > 0."""
+    from nsplat.ops.rng import stratified_uniforms, uniforms
+
+    N, m, seed = 30, 4, 5
+    _, _, K, proj = _setup(N, seed=8, B=2, dtype=torch.float64)
+    idx, probs, _, _ = sample(proj, K, W, H, samples=m, eps=1e-6, seed=seed, stratified=stratified)
+    checked = 0
+    for b in range(2):
+        lam = size_measures(proj, b, W, H).numpy()
+        pix = np.arange(W * H)
+        u = stratified_uniforms(seed, b, pix, np.arange(N), W) if stratified else uniforms(seed, b, pix, np.arange(N))
+        with np.errstate(divide="ignore"):
+            keys = np.where(lam > 0, np.log(u) - np.log(lam), np.inf)
+        srt = np.sort(keys, axis=1)
+        got_i = idx[b].reshape(-1, m).numpy()
+        got_p = probs[b].reshape(-1, m).numpy()
+        for p in range(W * H):
+            if abs(srt[p, m] - srt[p, m - 1]) < 1e-9 or lam[p].sum() < 1e-10:
+                continue
+            ref = set(np.argsort(keys[p], kind="stable")[:m][np.isfinite(srt[p, :m])].tolist())
+            sel = got_i[p] >= 0
+            assert set(got_i[p][sel].tolist()) == ref
+            thr = srt[p, m]
+            want = np.minimum(1.0, lam[p, got_i[p][sel]] * np.exp(thr)) if np.isfinite(thr) else np.ones(sel.sum())
+            np.testing.assert_allclose(got_p[p][sel], want, rtol=1e-9, atol=1e-300)
+            checked += 1
+    assert checked > 0.9 * 2 * W * H

@@ -23,6 +23,7 @@ constexpr int kMaxHermiteOrder = 16;    // per-dimension expansion order cap (va
 
 enum Composite : int { kAlpha = 0, kAdditive = 1 };
 enum Estimator : int { kHT = 0, kPaper = 1, kSampled = 2 };
+enum Inclusion : int { kThreshold = 0, kPips = 1 };  // sps.h: finalize_pixel
 
 NS_HD double dmin(double a, double b) { return a < b ? a : b; }
 NS_HD double dmax(double a, double b) { return a > b ? a : b; }

@@ -27,4 +27,38 @@ NS_HD double uniform01(uint64_t stream, int64_t point) {
 
 NS_HD double log_uniform(uint64_t stream, int64_t point) { return log(uniform01(stream, point)); }
 
+// Stratified draws (variance reduction across pixels). Every pixel of a camera shares one uniform per
+// point, h_k = uniform01(camera_stream, k), shifted by the pixel's rank-1 lattice value phi(x):
+// u = frac(h_k + phi(x)). Within a pixel the u_k stay i.i.d. uniform (a common shift of independent
+// uniforms mod 1), so every per-pixel sample is still an exact SPS draw; across pixels a point's draws
+// are a shifted low-discrepancy sequence instead of independent ones.
+NS_HD uint64_t camera_stream(uint64_t seed, int64_t camera) {
+  return mix64(mix64(seed + 0xD1B54A32D192ED03ull * static_cast<uint64_t>(camera + 1)) ^ 0x5851F42D4C957F2Dull);
+}
+
+// phi(col, row) = frac(a1 col + a2 row) with the R2 sequence's constants (plastic number).
+NS_HD double lattice_shift(int64_t col, int64_t row) {
+  double t = 0.7548776662466927 * static_cast<double>(col) + 0.5698402909980532 * static_cast<double>(row);
+  return t - floor(t);
+}
+
+// The per-pixel draw context: `shift` < 0 marks independent draws (u = uniform01(stream, point)).
+struct Draw {
+  uint64_t stream;
+  double shift;
+};
+
+NS_HD Draw pixel_draw(uint64_t seed, int64_t camera, int64_t pixel, int64_t width, bool stratified) {
+  if (!stratified) return Draw{pixel_stream(seed, camera, pixel), -1.0};
+  return Draw{camera_stream(seed, camera), lattice_shift(pixel % width, pixel / width)};
+}
+
+NS_HD double draw_uniform(const Draw& d, int64_t point) {
+  double u = uniform01(d.stream, point);
+  if (d.shift < 0.0) return u;
+  u += d.shift;
+  u -= floor(u);
+  return u > 0.0 ? u : 5.551115123125783e-17;  // keep u in (0, 1)
+}
+
 }  // namespace nsplat

@@ -3,14 +3,23 @@
 // Exact SPS draws, per pixel x, the m points with the smallest xi_k = u_k / lambda_k(x). We work with
 // keys log xi. The tree is traversed depth first, larger-bound child first. Each node has a rigorous
 // upper bound U_n(x) of its points' total size measure: min(box bound, Hermite estimate + truncation
-// bound) of the isotropic majorant (hermite.h). Once the sample holds m points, a node is pruned when
-// (P + U_n) * xi_(m) < eps, where P is the bound mass pruned so far; since xi_(m) only decreases, at the
-// end P * xi_(m) < eps, and by the union bound the probability that any unvisited point would have
-// entered the exact SPS sample is below eps. The total Lambda(x) is estimated as the visited exact mass
-// plus node estimates of the pruned mass, so |Lambda_hat - Lambda| <= P < eps / xi_(m).
+// bound) of the isotropic majorant (hermite.h). Besides the sample (a max-heap of the m smallest keys)
+// the search keeps the threshold xi_(m+1), the smallest key of any point offered but not in the sample.
+// Once it exists, a node is pruned when (P + U_n) * xi_(m+1) < eps, where P is the bound mass pruned
+// so far; since xi_(m+1) only decreases, at the end P * xi_(m+1) < eps, and by the union bound the
+// probability that any unvisited point would have entered the m + 1 smallest keys (so changed the
+// sample or the threshold) is below eps. The total Lambda(x) is estimated as the visited exact mass
+// plus node estimates of the pruned mass, so |Lambda_hat - Lambda| <= P < eps / xi_(m+1).
 //
-// Inclusion probabilities are the piPS ones, pi_k = min(1, c lambda_k) with sum pi = m, where c is
-// solved from the sampled lambdas (the largest ones are the certainty units) and Lambda_hat.
+// Inclusion probabilities (finalize_pixel), one of:
+//   kThreshold: pi_k = min(1, lambda_k * xi_(m+1)) (priority sampling, Duffield-Lund-Thorup 2007). Given
+//     the other points' keys, k is in the sample iff u_k < lambda_k * xi'_(m) where xi'_(m) is the m-th
+//     smallest of the others' keys, and when it is, xi_(m+1) = xi'_(m); so pi_k is k's exact
+//     conditional inclusion probability and E[1{k in S} / pi_k] = 1: Horvitz-Thompson with these
+//     weights is exactly unbiased (given an exact SPS search).
+//   kPips: the piPS target probabilities pi_k = min(1, c lambda_k) with sum pi = m, c solved from the
+//     sampled lambdas (the largest ones are the certainty units) and Lambda_hat. SPS includes points
+//     only approximately with these probabilities (Ohlsson 1998): HT with them is slightly biased.
 #pragma once
 #include "common.h"
 #include "ewa.h"
@@ -107,45 +116,54 @@ NS_HD void node_bound(const TreeView& T, int node, double u, double v, double* l
 
 struct PixelStats {
   double total;     // Lambda_hat(x)
+  double rest;      // log xi_(m+1), the smallest key outside the sample (+inf: every point with lambda > 0 is in)
   int evaluated;    // exact kernel evaluations (= points visited)
   bool exhaustive;  // every point of the tree was visited (nothing pruned)
 };
 
-// Offers sorted point s to the heap. Once the heap is full, `xi_max` = exp(key of the heap top) allows a
-// conservative rejection u >= xi_max * lambda * (1 + 1e-12) without computing log u; accepted candidates
-// are compared on exact keys, so the sample is the same as with exact keys everywhere.
-NS_HD void offer_point(const TreeView& T, int s, double u, double v, uint64_t stream, int m, double* key, int* id,
-                       int* cnt, double* visited, double* xi_max) {
+// Offers sorted point s to the sample. `rest` is the log threshold xi_(m+1) (the smallest key not in the
+// sample, +inf while there is none) and `xi_rest` = exp(rest): a point with u >= xi_rest * lambda * (1 +
+// 1e-12) cannot change the sample or the threshold and is rejected without computing log u; other
+// candidates are compared on exact keys, so the result is the same as with exact keys everywhere.
+NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw& draw, int m, double* key, int* id,
+                       int* cnt, double* visited, double* rest, double* xi_rest) {
   double lam_log = log_size(T.mu + 2 * s, T.con + 3 * s, T.logA[s], u, v);
   double lam = exp(lam_log);
   *visited += lam;
   int pid = T.id[s];
-  double un = uniform01(stream, pid);
-  if (*cnt == m && un >= *xi_max * lam * (1.0 + 1e-12)) return;
+  double un = draw_uniform(draw, pid);
+  if (*cnt == m && un >= *xi_rest * lam * (1.0 + 1e-12)) return;
   double k = log(un) - lam_log;
   if (*cnt < m) {
     heap_push(key, id, *cnt, k, pid);
     ++*cnt;
-    if (*cnt == m) *xi_max = exp(key[0]);
-  } else if (key_less(k, pid, key[0], id[0])) {
+    return;
+  }
+  if (key_less(k, pid, key[0], id[0])) {
+    double evicted = key[0];
     key[0] = k;
     id[0] = pid;
     heap_sift_down(key, id, m, 0);
-    *xi_max = exp(key[0]);
+    k = evicted;
+  }
+  if (k < *rest) {
+    *rest = k;
+    *xi_rest = exp(k);
   }
 }
 
 // Draws the SPS sample of pixel (u, v). On return idx[0..cnt) holds original point ids and key[] is
-// scratch; `*cnt` is the sample size. Returns the total estimate and work counter.
-NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t stream, int m, double log_eps,
+// scratch; `*cnt` is the sample size. Returns the total estimate, the log threshold and work counter.
+NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, const Draw& draw, int m, double log_eps,
                                 double* key, int* idx, int* cnt) {
-  PixelStats st{0.0, 0, true};
+  PixelStats st{0.0, INFINITY, 0, true};
   *cnt = 0;
   if (T.n == 0) return st;
-  double visited = 0.0, xi_max = INFINITY;
+  double visited = 0.0, rest = INFINITY, xi_rest = INFINITY;
   if (T.n == 1) {
-    offer_point(T, 0, u, v, stream, m, key, idx, cnt, &visited, &xi_max);
+    offer_point(T, 0, u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
     st.total = visited;
+    st.rest = rest;
     st.evaluated = 1;
     return st;
   }
@@ -164,9 +182,9 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     --sp;
     int node = node_st[sp];
     double lub = lub_st[sp];
-    if (*cnt == m) {
+    if (rest < INFINITY) {
       double lp = log_add_exp(log_pruned, lub);
-      if (lp + key[0] < log_eps) {
+      if (lp + rest < log_eps) {
         log_pruned = lp;
         pruned_est += est_st[sp];
         continue;
@@ -174,7 +192,7 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     }
     const InternalNode& nd = T.nodes[node];
     if (nd.last - nd.first + 1 <= kLeafSize) {
-      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, stream, m, key, idx, cnt, &visited, &xi_max);
+      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
       st.evaluated += nd.last - nd.first + 1;
       continue;
     }
@@ -183,7 +201,7 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     int internal = 0;
     for (int c = 0; c < 2; ++c) {
       if (child[c] < 0) {
-        offer_point(T, ~child[c], u, v, stream, m, key, idx, cnt, &visited, &xi_max);
+        offer_point(T, ~child[c], u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
         st.evaluated += 1;
         cl[c] = -INFINITY;
       } else {
@@ -200,31 +218,33 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, uint64_t 
     }
   }
   st.total = visited + pruned_est;
+  st.rest = rest;
   st.exhaustive = log_pruned == -INFINITY;
   return st;
 }
 
-// Turns the heap into the output sample: piPS probabilities from Lambda_hat, then slots ordered front to
-// back by per-pixel depth (ties by id). Empty slots get index -1 and probability 0. When the sample holds
-// every point with lambda > 0 (`all_in`), all probabilities are 1.
+// Turns the heap into the output sample: inclusion probabilities (kThreshold from the log threshold
+// `rest`, kPips from Lambda_hat), then slots ordered front to back by per-pixel depth (ties by id). Empty
+// slots get index -1 and probability 0. When the sample holds every point with lambda > 0 (`all_in`, or
+// no point outside the sample has a finite key), all probabilities are 1.
 template <typename S>
 NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray& ray, int m, int cnt, double total,
-                          bool all_in, double* key, int* idx, S* prob) {
+                          double rest, bool all_in, int inclusion, double* key, int* idx, S* prob) {
   if (total < kMinTotal) cnt = 0;
   double c = INFINITY;
-  if (cnt == m && !all_in) {
+  if (inclusion == kPips && cnt == m && !all_in && rest < INFINITY) {
     for (int i = 0; i < cnt; ++i) {
       int k = idx[i];
       key[i] = -exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
     }
     heap_sort(key, idx, cnt);  // lambda descending
-    double rest = total;
+    double rest_mass = total;
     for (int j = 0; j < cnt; ++j) {
       double lam = -key[j];
-      double cj = (m - j) / rest;
+      double cj = (m - j) / rest_mass;
       if (cj * lam < 1.0) { c = cj; break; }
-      rest -= lam;
-      if (rest <= 1e-12 * total) break;  // the remaining mass is rounding noise: all certainty units
+      rest_mass -= lam;
+      if (rest_mass <= 1e-12 * total) break;  // the remaining mass is rounding noise: all certainty units
     }
   }
   for (int i = 0; i < cnt; ++i) {
@@ -234,14 +254,16 @@ NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray&
     key[i] = static_cast<double>(splat_depth(P.nrm + 3 * k, P.off[k], P.zc[k], ray, &on_plane, &dot));
   }
   heap_sort(key, idx, cnt);
+  const bool certain = all_in || rest == INFINITY;
   for (int i = 0; i < cnt; ++i) {
     int k = idx[i];
-    if (c == INFINITY) {
+    if (certain || (inclusion == kPips && c == INFINITY)) {
       prob[i] = S(1);
-    } else {
-      double lam = exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
-      prob[i] = static_cast<S>(dmin(1.0, c * lam));
+      continue;
     }
+    double lam_log = log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v);
+    double pi = inclusion == kPips ? c * exp(lam_log) : exp(dmin(lam_log + rest, 0.0));
+    prob[i] = static_cast<S>(dmin(1.0, pi));
   }
   for (int i = cnt; i < m; ++i) {
     idx[i] = -1;

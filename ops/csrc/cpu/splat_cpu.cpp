@@ -142,7 +142,8 @@ void check_cpu(const std::vector<at::Tensor>& ts) {
 template <typename S>
 void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& sig2,
                  const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, int64_t width,
-                 int64_t height, int64_t m, double log_eps, int64_t seed, int order, double tol, at::Tensor& indices,
+                 int64_t height, int64_t m, double log_eps, int64_t seed, int order, double tol, int inclusion,
+                 bool stratified, at::Tensor& indices,
                  at::Tensor& probs, at::Tensor& total, at::Tensor& work) {
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height;
   const int nt = num_threads();
@@ -163,13 +164,13 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
 #pragma omp for schedule(dynamic, 16)
       for (int64_t p = 0; p < P; ++p) {
         double u = double(p % width) + 0.5, v = double(p / width) + 0.5;
-        uint64_t stream = pixel_stream(static_cast<uint64_t>(seed), b, p);
+        const Draw draw = pixel_draw(static_cast<uint64_t>(seed), b, p, width, stratified);
         int cnt = 0;
         int* idx = idx_b + p * m;
-        PixelStats st = traverse_pixel(tv, u, v, stream, static_cast<int>(m), log_eps, key.data(), idx, &cnt);
+        PixelStats st = traverse_pixel(tv, u, v, draw, static_cast<int>(m), log_eps, key.data(), idx, &cnt);
         Ray ray = pixel_ray(K, u, v);
-        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.exhaustive && st.evaluated == cnt, key.data(),
-                       idx, prob_b + p * m);
+        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt,
+                       inclusion, key.data(), idx, prob_b + p * m);
         total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
         work_b[p] = st.evaluated;
       }
@@ -179,7 +180,8 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
 
 std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
                                at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
-                               int64_t samples, double eps, int64_t seed, int64_t order, double tol) {
+                               int64_t samples, double eps, int64_t seed, int64_t order, double tol, int64_t inclusion,
+                               bool stratified) {
   check_cpu({mu, con, amp, sig2, nrm, off, zc, Ks});
   const int64_t B = amp.size(0);
   auto opts = mu.options();
@@ -190,7 +192,8 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample", [&] {
     sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, width, height, samples, std::log(eps), seed,
-                          static_cast<int>(order), tol, indices, probs, total, work);
+                          static_cast<int>(order), tol, static_cast<int>(inclusion), stratified, indices, probs, total,
+                          work);
   });
   return {indices, probs, total, work};
 }

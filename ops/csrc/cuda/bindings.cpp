@@ -13,7 +13,8 @@ namespace nsplat {
 std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                     const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
                                     const at::Tensor& zc, const at::Tensor& Ks, int64_t width, int64_t height,
-                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol);
+                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                                    int64_t inclusion, bool stratified);
 std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                                const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc,
                                                const at::Tensor& Ks, const at::Tensor& feat, const at::Tensor& bg,
@@ -70,7 +71,8 @@ void check_points(const at::Tensor& amp) {
 
 std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
                                at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
-                               int64_t samples, double eps, int64_t seed, int64_t order, double tol) {
+                               int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                               int64_t inclusion, bool stratified) {
   check_cuda({mu, con, amp, sig2, nrm, off, zc, Ks});
   check_dtype({mu, con, amp, sig2, nrm, off, zc});
   check_points(amp);
@@ -78,7 +80,9 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
   TORCH_CHECK(samples >= 1 && samples < std::numeric_limits<int>::max(), "nsplat: samples must be in [1, 2^31)");
   TORCH_CHECK(eps > 0 && eps <= 1, "nsplat: eps must be in (0, 1]");
   TORCH_CHECK(order >= 0 && order <= 16, "nsplat: hermite_order must be in [0, 16]");
-  return sample_cuda(mu, con, amp, sig2, nrm, off, zc, Ks, width, height, samples, eps, seed, order, tol);
+  TORCH_CHECK(inclusion == 0 || inclusion == 1, "nsplat: inclusion must be 0 (threshold) or 1 (pips)");
+  return sample_cuda(mu, con, amp, sig2, nrm, off, zc, Ks, width, height, samples, eps, seed, order, tol, inclusion,
+                     stratified);
 }
 
 std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm, at::Tensor off,

@@ -360,17 +360,19 @@ SplatsBase<S> splats_base(const at::Tensor& mu, const at::Tensor& con, const at:
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t P, int m,
-                  double log_eps, uint64_t seed, int64_t b, double* __restrict__ key_scratch, int* __restrict__ idx_b,
+                  double log_eps, uint64_t seed, int64_t b, int inclusion, bool stratified,
+                  double* __restrict__ key_scratch, int* __restrict__ idx_b,
                   S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
   NS_GRID_STRIDE(p, P) {
     const double u = static_cast<double>(p % width) + 0.5, v = static_cast<double>(p / width) + 0.5;
-    const uint64_t stream = pixel_stream(seed, b, p);
+    const Draw draw = pixel_draw(seed, b, p, width, stratified);
     int cnt = 0;
     int* idx = idx_b + p * m;
     double* key = key_scratch + p * m;
-    const PixelStats st = traverse_pixel(tv, u, v, stream, m, log_eps, key, idx, &cnt);
+    const PixelStats st = traverse_pixel(tv, u, v, draw, m, log_eps, key, idx, &cnt);
     const Ray ray = pixel_ray(K, u, v);
-    finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.exhaustive && st.evaluated == cnt, key, idx, prob_b + p * m);
+    finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt, inclusion, key, idx,
+                   prob_b + p * m);
     total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
     work_b[p] = st.evaluated;
   }
@@ -488,7 +490,8 @@ __global__ void __launch_bounds__(kPixelThreads)
 std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                     const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
                                     const at::Tensor& zc, const at::Tensor& Ks, int64_t width, int64_t height,
-                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol) {
+                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                                    int64_t inclusion, bool stratified) {
   const DeviceGuard guard(mu.device());
   const Stream stream = current_stream();
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height, m = samples;
@@ -510,7 +513,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
                     sig2.data_ptr<S>() + b * N, N, static_cast<int>(order), tol, opts, stream);
       NS_LAUNCH(sample_kernel<S>, blocks_for(P, kPixelThreads), kPixelThreads, stream,
           tree.view(), base.camera(b), Kd.data_ptr<double>() + b * 9, width, P, static_cast<int>(m), log_eps,
-          static_cast<uint64_t>(seed), b, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
+          static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
           probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
       NS_LAUNCH_CHECK();
       // The tree's tensors go back to the caching allocator here, in stream order.
