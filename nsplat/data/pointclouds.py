@@ -12,6 +12,8 @@ import numpy as np
 import torch
 from plyfile import PlyData
 
+from nsplat.errors import DataError
+
 #: Shape name → file name inside ``dss_pointclouds/``.
 DSS_SHAPES: dict[str, str] = {
     "bunny": "bunny-8000.ply",
@@ -52,8 +54,9 @@ class PointCloud:
 def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> PointCloud:
     """Read ``x y z nx ny nz`` from the ``vertex`` element of a PLY; normals are normalised.
 
-    Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming missing properties or
-    zero-length normals.
+    Raises ``FileNotFoundError`` for a missing file and :class:`~nsplat.errors.DataError` (a ``ValueError``)
+    naming the file for unreadable files, missing properties, zero vertices, NaN/Inf values or zero-length
+    normals.
     """
     path = Path(path)
     if not path.is_file():
@@ -61,19 +64,29 @@ def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> P
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
-        raise ValueError(f"{path}: not a readable PLY file (truncated or corrupt?): {exc}") from exc
+        raise DataError(f"{path}: not a readable PLY file (truncated or corrupt?): {exc}") from exc
     if "vertex" not in [e.name for e in ply.elements]:
-        raise ValueError(f"{path}: no 'vertex' element")
+        raise DataError(f"{path}: no 'vertex' element")
     v = ply["vertex"]
     names = set(v.data.dtype.names)
     missing = [k for k in ("x", "y", "z", "nx", "ny", "nz") if k not in names]
     if missing:
-        raise ValueError(f"{path}: missing vertex properties {missing}")
-    pts = np.stack([np.asarray(v[k], np.float64) for k in ("x", "y", "z")], 1)
-    nrm = np.stack([np.asarray(v[k], np.float64) for k in ("nx", "ny", "nz")], 1)
+        raise DataError(f"{path}: missing vertex properties {missing}")
+    try:
+        pts = np.stack([np.asarray(v[k], np.float64) for k in ("x", "y", "z")], 1)
+        nrm = np.stack([np.asarray(v[k], np.float64) for k in ("nx", "ny", "nz")], 1)
+    except (TypeError, ValueError) as exc:  # list properties, non-numeric data
+        raise DataError(f"{path}: vertex properties x y z nx ny nz must be numeric scalars: {exc}") from None
+    if pts.shape[0] == 0:
+        raise DataError(f"{path}: the PLY has zero vertices")
+    for what, arr in (("coordinates (x y z)", pts), ("normals (nx ny nz)", nrm)):
+        bad = ~np.isfinite(arr).all(1)
+        if bad.any():
+            raise DataError(f"{path}: {int(bad.sum())} vertices have NaN or Inf {what}, first at vertex "
+                            f"{int(np.nonzero(bad)[0][0])}")
     length = np.linalg.norm(nrm, axis=1)
     if (length == 0).any():
-        raise ValueError(f"{path}: {int((length == 0).sum())} vertices have zero-length normals")
+        raise DataError(f"{path}: {int((length == 0).sum())} vertices have zero-length normals")
     nrm = nrm / length[:, None]
     return PointCloud(torch.as_tensor(pts, dtype=dtype), torch.as_tensor(nrm, dtype=dtype), path.stem)
 

@@ -13,6 +13,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from nsplat.config import require_fields
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.ops import splat, splat_dense
 from nsplat.runctx import RunContext
@@ -32,6 +33,9 @@ class Config:
     samples: int = 40
     eps: float = 0.01
     compare_dense: bool = False
+
+    def __post_init__(self) -> None:
+        require_fields(self, points=">=1", resolution=">=1", views=">=1", samples=">=1", eps="prob")
 
 
 def demo_scene(n: int, seed: int = 0) -> dict[str, torch.Tensor]:
