@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from nsplat.config import ConfigError
+from nsplat.data.pointclouds import check_ply_header
 from nsplat.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -313,6 +314,7 @@ class SurfelScene(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"path: no PLY file at {path}")
+        check_ply_header(path)
         try:
             vertex = PlyData.read(str(path))["vertex"]
         except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file

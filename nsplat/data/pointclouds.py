@@ -51,6 +51,34 @@ class PointCloud:
         return float((self.points - self.center).norm(dim=-1).max())
 
 
+def check_ply_header(path: Path) -> None:
+    """Reject PLY headers that make plyfile crash the process or misbehave, before it parses the file.
+
+    An element without properties in a binary file makes numpy divide by a zero item size (SIGFPE), so
+    every element must declare at least one property and a non-negative integer count.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise DataError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the first 64 KiB)")
+    element, props = None, 0
+    for raw in head[:end].split(b"\n")[1:]:
+        words = raw.decode("ascii", "replace").split()
+        if not words:
+            continue
+        if words[0] == "element":
+            if element is not None and props == 0:
+                raise DataError(f"{path}: PLY element {element!r} declares no properties")
+            if len(words) != 3 or not words[2].isdigit():
+                raise DataError(f"{path}: malformed PLY element line {' '.join(words)!r} (expected 'element NAME COUNT')")
+            element, props = words[1], 0
+        elif words[0] == "property":
+            props += 1
+    if element is not None and props == 0:
+        raise DataError(f"{path}: PLY element {element!r} declares no properties")
+
+
 def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> PointCloud:
     """Read ``x y z nx ny nz`` from the ``vertex`` element of a PLY; normals are normalised.
 
@@ -61,6 +89,7 @@ def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> P
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no PLY file at {path}")
+    check_ply_header(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
