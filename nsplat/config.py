@@ -50,7 +50,8 @@ _FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
 _StrictLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 for _first in "-+.0123456789":
     _StrictLoader.yaml_implicit_resolvers[_first] = [
-        (tag, rx) for tag, rx in _StrictLoader.yaml_implicit_resolvers.get(_first, []) if tag != "tag:yaml.org,2002:float"]
+        (tag, rx) for tag, rx in _StrictLoader.yaml_implicit_resolvers.get(_first, [])
+        if tag != "tag:yaml.org,2002:float"]
     _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, [_first])
 
 

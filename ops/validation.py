@@ -320,7 +320,7 @@ def check_projection_numerics(*, in_range: torch.Tensor, detJ: torch.Tensor, det
 
     * A visible (in-range, not edge-on) splat whose screen covariance or centre overflows the dtype
       would be dropped silently (float32 from σ ≈ 10¹⁰ px): raise naming ``scales`` and the points.
-    * float32 with ``lowpass = 0``: a visible splat with ``0 < det Σ < 1e-20`` px⁴ (σ ≲ 10⁻⁵ px) has
+    * float32 with ``lowpass < 1e-12``: a visible splat with ``0 < det Σ < 1e-20`` px⁴ (σ ≲ 10⁻⁵ px) has
       NaN/Inf gradients; raised only when the projection is differentiated.
     """
     live = in_range & (detJ != 0)
@@ -330,13 +330,13 @@ def check_projection_numerics(*, in_range: torch.Tensor, detJ: torch.Tensor, det
         raise ValueError(f"scales: points {idx} (camera {b}) project to splats too large or too far off-screen "
                          f"for {det.dtype} (the screen covariance or centre overflows) and would be dropped "
                          f"silently; use float64, smaller scales, or cull them with near/far")
-    if differentiable and det.dtype == torch.float32 and lowpass == 0:
+    if differentiable and det.dtype == torch.float32 and lowpass < 1e-12:
         tiny = live & (det > 0) & (det < TINY_DET_F32)
         if bool(tiny.any()):
             b, idx = _points(tiny)
             raise ValueError(f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
-                             f"lowpass=0 in float32: their gradients would be NaN/Inf; use lowpass > 0 "
-                             f"(e.g. 1e-12) or float64")
+                             f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
+                             f"lowpass >= 1e-12 or float64")
 
 
 def _points(mask: torch.Tensor, limit: int = 10) -> tuple[int, list[int]]:

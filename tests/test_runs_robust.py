@@ -236,8 +236,8 @@ def test_exponent_floats_are_numbers(tmp_path):
 
 def test_options_may_come_after_overrides(tmp_path, capsys):
     run = tmp_path / "run"
-    code, _ = run_cli(capsys, "views=1", "--run", str(run), "samples=2", "--config", str(ROOT / "configs" / "demo.yaml"),
-                      "points=60", "resolution=6")
+    code, _ = run_cli(capsys, "views=1", "--run", str(run), "samples=2", "--config",
+                      str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6")
     assert code == 0
     saved = read_yaml(run / "config.yaml")
     assert (saved["views"], saved["samples"], saved["points"]) == (1, 2, 60)

@@ -71,7 +71,8 @@ def check_ply_header(path: Path) -> None:
             if element is not None and props == 0:
                 raise DataError(f"{path}: PLY element {element!r} declares no properties")
             if len(words) != 3 or not words[2].isdigit():
-                raise DataError(f"{path}: malformed PLY element line {' '.join(words)!r} (expected 'element NAME COUNT')")
+                raise DataError(f"{path}: malformed PLY element line {' '.join(words)!r} "
+                                f"(expected 'element NAME COUNT')")
             element, props = words[1], 0
         elif words[0] == "property":
             props += 1
