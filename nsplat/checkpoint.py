@@ -3,17 +3,24 @@
 A checkpoint is written to a temporary file in the same folder, flushed and fsync'ed, then renamed
 over ``ckpt-<step>.pt`` (``os.replace`` is atomic on POSIX), and only then is ``latest`` updated the
 same way. A process killed at any point leaves either the previous complete checkpoint or the new
-one; partial temporaries are ignored and cleaned up by the next save.
+one; partial temporaries are ignored and cleaned up by the next save, which removes only temporaries
+whose writer (the pid in their name) is dead, never another live process's in-flight file.
+
+Rotation keeps the newest ``keep`` checkpoints *of the current run*: only checkpoints with a step at or
+below the one just written are candidates (a higher step cannot belong to this run's past), and the
+file ``latest`` names is never removed.
 """
 from __future__ import annotations
 
 import os
 import random
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
+
+from nsplat.runctx import pid_alive
 
 
 class CheckpointError(RuntimeError):
@@ -41,8 +48,31 @@ def set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def temp_path(path: Path) -> Path:
+    """The temporary file an atomic write of ``path`` goes through: ``.<name>.tmp-<pid>``."""
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Delete ``.*.tmp-<pid>`` files in ``folder`` whose writer is dead (or is this process, which has
+    no write in flight when this is called); returns the removed paths."""
+    removed = []
+    for tmp in Path(folder).glob(".*.tmp-*"):
+        pid_text = tmp.name.rsplit("-", 1)[-1]
+        pid = int(pid_text) if pid_text.isdigit() else 0
+        if pid == os.getpid() or not pid_alive(pid):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
+def atomic_write(path: Path, write: Callable[[Any], Any]) -> None:
+    """Write ``path`` atomically: ``write(fh)`` into a pid-named temporary, fsync, rename, fsync the folder."""
+    _atomic_write(Path(path), write)
+
+
 def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = temp_path(path)
     with open(tmp, "wb") as fh:
         write(fh)
         fh.flush()
@@ -62,15 +92,33 @@ def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int =
     """
     folder = Path(run_dir) / "checkpoints"
     folder.mkdir(parents=True, exist_ok=True)
-    for stale in folder.glob(".*.tmp-*"):
-        stale.unlink(missing_ok=True)
+    remove_stale_temporaries(folder)
     payload = dict(state, step=step, rng=rng_state())
     path = folder / f"ckpt-{step:08d}.pt"
     _atomic_write(path, lambda fh: torch.save(payload, fh))
     _atomic_write(folder / "latest", lambda fh: fh.write(path.name.encode()))
-    for old in sorted(folder.glob("ckpt-*.pt"))[:-keep]:
-        old.unlink(missing_ok=True)
+    rotate_checkpoints(folder, step, keep)
     return path
+
+
+def _step_of(path: Path) -> int | None:
+    """The step in ``ckpt-<step>.pt`` (None for other names)."""
+    digits = path.stem.removeprefix("ckpt-")
+    return int(digits) if digits.isdigit() else None
+
+
+def rotate_checkpoints(folder: Path, step: int, keep: int) -> list[Path]:
+    """Remove all but the newest ``keep`` checkpoints with step <= ``step``; never the one ``latest``
+    names nor any with a higher step. Returns the removed paths."""
+    latest = folder / "latest"
+    named = latest.read_text().strip() if latest.is_file() else None
+    mine = sorted((s, p) for p in folder.glob("ckpt-*.pt") if (s := _step_of(p)) is not None and s <= step)
+    removed = []
+    for _, old in mine[:-max(keep, 1)]:
+        if old.name != named:
+            old.unlink(missing_ok=True)
+            removed.append(old)
+    return removed
 
 
 def load_checkpoint(run_dir: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:

@@ -7,20 +7,29 @@ Usage::
     python train.py --config configs/lego.yaml --run runs/lego --resume
     python train.py eval --run runs/lego --split test
     python train.py render --run runs/lego
+
+User errors (bad config, bad data files, a run folder that cannot be used as asked) print one line on
+stderr and exit with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md).
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 import yaml
 
+from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
-from nsplat.runctx import RunContext
+from nsplat.errors import DataError
+from nsplat.ops.validation import AllocationError
+from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
+                           config_differences, folder_contents, lock_holder)
 from nsplat.tasks import get_task
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -28,50 +37,98 @@ DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
 log = logging.getLogger("nsplat")
 
 
+COMMANDS = ("train", "eval", "render")
+#: Errors caused by the user's input: reported in one line, exit code 2, no traceback.
+USER_ERRORS = (ConfigError, RunFolderError, DataError, CheckpointError, AllocationError, FileNotFoundError)
+
+
+class UsageError(Exception):
+    """A command line that cannot be parsed (unknown command or option)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser that raises :class:`UsageError` instead of printing usage and exiting."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(message)
+
+
+def _command(argv: list[str]) -> tuple[str, list[str]]:
+    """Split off the sub-command; a bare word that is not ``key=value`` and not a command is an error."""
+    if argv and argv[0] in COMMANDS:
+        return argv[0], argv[1:]
+    if argv and not argv[0].startswith("-") and "=" not in argv[0]:
+        raise UsageError(f"unknown command {argv[0]!r}; valid commands: {', '.join(COMMANDS)} "
+                         f"(overrides are key=value)")
+    return "train", argv
+
+
 def _parse(argv: list[str]) -> argparse.Namespace:
-    commands = {"train", "eval", "render"}
-    command = "train"
-    if argv and argv[0] in commands:
-        command, argv = argv[0], argv[1:]
-    p = argparse.ArgumentParser(prog="train.py", description=__doc__,
+    command, argv = _command(argv)
+    p = _Parser(prog="train.py", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
     p.add_argument("--run", type=Path, default=None, help="run folder (default: runs/<config>-<time>)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --run")
+    p.add_argument("--overwrite", action="store_true",
+                   help="delete the contents of a non-empty --run folder and start afresh")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     p.add_argument("--seed", type=int, default=None, help="global seed (default: from the config, else 0)")
     p.add_argument("--split", default="test", help="split for `eval`")
     p.add_argument("overrides", nargs="*", help="config overrides key=value (dotted keys)")
-    args = p.parse_args(argv)
+    args = p.parse_intermixed_args(argv)  # options may come after overrides
     args.command = command
+    bad = [o for o in args.overrides if "=" not in o]
+    if bad:
+        raise UsageError(f"unexpected argument {bad[0]!r}: overrides are key=value")
+    if args.resume and args.overwrite:
+        raise UsageError("--resume and --overwrite exclude each other")
     return args
 
 
 def _device(name: str | None) -> torch.device:
     if name is None:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise ConfigError(f"--device {name!r}: not a torch device ({_one_line(exc)})") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit(f"--device {name}: CUDA is not available on this machine")
+        raise ConfigError(f"--device {name}: CUDA is not available on this machine")
     return dev
 
 
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit code (0 success, 2 user error)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    args = _parse(sys.argv[1:] if argv is None else argv)
     try:
+        args = _parse(sys.argv[1:] if argv is None else argv)
         if args.command == "train":
             return _train(args)
         return _post(args)
+    except UsageError as exc:
+        print(f"usage error: {_one_line(exc)} (see train.py --help)", file=sys.stderr)
+        return 2
     except ConfigError as exc:
-        print(f"config error: {exc}", file=sys.stderr)
+        print(f"config error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except USER_ERRORS as exc:
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
 
 
-def _train(args: argparse.Namespace) -> int:
+def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]:
+    """(task module, config, the run's saved config dict when resuming); reads only."""
+    saved = None
     if args.resume:
         if args.run is None:
-            raise SystemExit("--resume needs --run DIR")
+            raise RunFolderError("--resume needs --run DIR")
+        check_run_folder(args.run, resume=True, overwrite=False)
         raw = read_yaml(args.run / "config.yaml")
     else:
         raw = read_yaml(args.config or DEFAULT_CONFIG)
@@ -79,29 +136,72 @@ def _train(args: argparse.Namespace) -> int:
         raise ConfigError("config has no 'task' key")
     task = get_task(raw["task"])
     cfg = load_config(task.Config, raw, args.overrides)
+    if args.resume:
+        saved = to_dict(load_config(task.Config, raw))
+        changed = config_differences(saved, to_dict(cfg))
+        if changed:
+            raise RunFolderError(f"--resume: the overrides change {', '.join(changed)} of the run in {args.run}; "
+                                 f"a resumed run keeps its config (start a new run to change them)")
+    return task, cfg, saved
+
+
+def _train(args: argparse.Namespace) -> int:
+    task, cfg, _ = _configs(args)
     seed = args.seed if args.seed is not None else int(getattr(cfg, "seed", 0))
+    device = _device(args.device)
     if args.run is None:
         stem = (args.config or DEFAULT_CONFIG).stem
         args.run = REPO_ROOT / "runs" / f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    holder = lock_holder(args.run)
+    if holder is not None:
+        raise RunFolderError(f"run folder {args.run} is in use by process {holder}; wait for it to finish "
+                             f"or use another --run")
+    check_run_folder(args.run, resume=args.resume, overwrite=args.overwrite)
+    created = not args.run.exists()
     args.run.mkdir(parents=True, exist_ok=True)
-    (args.run / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
-    ctx = RunContext(run_dir=args.run, device=_device(args.device), seed=seed, resume=args.resume)
-    log.info("run folder: %s", args.run)
-    task.run(cfg, ctx)
+    lock = RunLock(args.run).acquire()  # the holder's folder: never removed here when this fails
+    try:
+        check_run_folder(args.run, resume=args.resume, overwrite=args.overwrite)  # again, under the lock
+    except RunFolderError:
+        lock.release()
+        raise
+    fresh = not args.resume
+    try:
+        if fresh:
+            clear_run_folder(args.run)
+            text = yaml.safe_dump(to_dict(cfg), sort_keys=False).encode()
+            atomic_write(args.run / "config.yaml", lambda fh: fh.write(text))
+        ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
+        log.info("run folder: %s", args.run)
+        task.run(cfg, ctx)
+    except USER_ERRORS:
+        failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
+        if failed_start:  # a failed start leaves no half-made run behind
+            clear_run_folder(args.run)
+        lock.release()
+        if failed_start and created:
+            shutil.rmtree(args.run, ignore_errors=True)
+        raise
+    finally:
+        lock.release()
     return 0
 
 
 def _post(args: argparse.Namespace) -> int:
     if args.run is None:
-        raise SystemExit(f"`{args.command}` needs --run DIR")
+        raise RunFolderError(f"`{args.command}` needs --run DIR")
+    if not (args.run / "config.yaml").is_file():
+        raise RunFolderError(f"`{args.command}`: {args.run} holds no run (no config.yaml)")
     raw = read_yaml(args.run / "config.yaml")
+    if "task" not in raw:
+        raise ConfigError(f"{args.run / 'config.yaml'} has no 'task' key")
     task = get_task(raw["task"])
     cfg = load_config(task.Config, raw, args.overrides)
     ctx = RunContext(run_dir=args.run, device=_device(args.device),
                      seed=int(getattr(cfg, "seed", 0)), resume=True)
     fn = getattr(task, "evaluate" if args.command == "eval" else "render", None)
     if fn is None:
-        raise SystemExit(f"task {raw['task']!r} has no `{args.command}` command")
+        raise ConfigError(f"task {raw['task']!r} has no `{args.command}` command")
     if args.command == "eval":
         fn(cfg, ctx, split=args.split)
     else:

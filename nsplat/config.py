@@ -8,6 +8,7 @@ the message. Nothing is silently dropped or coerced except ``int`` → ``float``
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from pathlib import Path
@@ -20,6 +21,75 @@ T = TypeVar("T")
 
 class ConfigError(ValueError):
     """A configuration file or override is invalid (unknown key, wrong type, bad syntax)."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """YAML safe loader that rejects duplicate mapping keys and reads ``1e-3`` as a float.
+
+    PyYAML follows YAML 1.1, where a float needs a dot (``1.0e-3``) and ``1e-3`` is a string; every
+    other YAML tool (and Python) reads it as a number, so we do too.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        """Build a mapping; a key that occurs twice raises a ``ConstructorError`` naming it and its line."""
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (first at line {seen[key].line + 1})", key_node.start_mark)
+            seen[key] = key_node.start_mark
+        return super().construct_mapping(node, deep=deep)
+
+
+_FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X)
+_StrictLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _first in "-+.0123456789":
+    _StrictLoader.yaml_implicit_resolvers[_first] = [
+        (tag, rx) for tag, rx in _StrictLoader.yaml_implicit_resolvers.get(_first, [])
+        if tag != "tag:yaml.org,2002:float"]
+    _StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, [_first])
+
+
+def yaml_load(text: str) -> Any:
+    """Parse YAML text strictly (:class:`_StrictLoader`): duplicate keys are errors, ``1e-3`` is a float."""
+    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+class FieldError(ConfigError):
+    """A field of a config section is out of range; :func:`from_dict` adds the section's dotted prefix."""
+
+    def __init__(self, key: str, expected: str, value: Any) -> None:
+        super().__init__(f"{key}: expected {expected}, got {value!r}")
+        self.key, self.expected, self.value = key, expected, value
+
+    def with_prefix(self, prefix: str) -> "FieldError":
+        """The same error with the section's dotted prefix on the key."""
+        return FieldError(prefix + self.key, self.expected, self.value)
+
+
+def require(ok: bool, key: str, expected: str, value: Any) -> None:
+    """In a config dataclass's ``__post_init__``: raise :class:`FieldError` (``"<key>: expected <expected>,
+    got <value>"``, the key relative to the section) unless ``ok``."""
+    if not ok:
+        raise FieldError(key, expected, value)
+
+
+def require_fields(obj: Any, **rules: str) -> None:
+    """Range rules for fields of ``obj``: ``">=1"``, ``">=0"``, ``">0"``, ``"prob"`` (in (0, 1]),
+    ``"unit"`` (in [0, 1]); ``None`` values (optional fields) pass."""
+    checks = {">=1": (lambda v: v >= 1, "a value >= 1"), ">=0": (lambda v: v >= 0, "a value >= 0"),
+              ">0": (lambda v: v > 0, "a value > 0"), "prob": (lambda v: 0 < v <= 1, "a value in (0, 1]"),
+              "unit": (lambda v: 0 <= v <= 1, "a value in [0, 1]")}
+    for name, rule in rules.items():
+        value = getattr(obj, name)
+        ok, expected = checks[rule]
+        values = value if isinstance(value, (list, tuple)) else [value]
+        require(all(v is None or ok(v) for v in values), name, expected, value)
 
 
 def _type_name(tp: Any) -> str:
@@ -98,7 +168,10 @@ def from_dict(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
             f"valid keys here: {', '.join(sorted(names))}"
         )
     kwargs = {name: _coerce(value, hints[name], prefix + name) for name, value in data.items()}
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except FieldError as exc:
+        raise exc.with_prefix(prefix) from None
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
@@ -122,9 +195,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not key:
         raise ConfigError(f"override {text!r} has an empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = yaml_load(raw) if raw.strip() else ""
     except yaml.YAMLError as exc:
-        raise ConfigError(f"override {text!r}: cannot parse value: {exc}") from exc
+        raise ConfigError(f"override {text!r}: cannot parse value: {_one_line(exc)}") from exc
     return key.split("."), value
 
 
@@ -143,15 +216,28 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     return out
 
 
+def _one_line(exc: Exception) -> str:
+    """A parser's multi-line message on one line."""
+    return " ".join(str(exc).split())
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping, with a clear error for a missing or malformed file."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
     try:
-        data = yaml.safe_load(p.read_text())
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {p} is not UTF-8 text (binary or corrupt?): {exc}") from exc
+    except OSError as exc:
+        raise ConfigError(f"config file {p} cannot be read: {exc.strerror or exc}") from exc
+    if "\x00" in text:
+        raise ConfigError(f"config file {p} is not a text file (it contains NUL bytes)")
+    try:
+        data = yaml_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {p} is not valid YAML: {exc}") from exc
+        raise ConfigError(f"config file {p} is not valid YAML: {_one_line(exc)}") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):

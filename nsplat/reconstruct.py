@@ -21,6 +21,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from nsplat.config import require, require_fields
 from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
 from nsplat.ops import SplatOutput, splat_dense, tangent_frame
 from nsplat.scene import SurfelScene
@@ -51,6 +52,10 @@ class RenderConfig:
     far: float = 1e10
     cutoff: float = 3.0
     tile: int = 16
+
+    def __post_init__(self) -> None:
+        require_fields(self, samples=">=1", eps="prob", near=">0", lowpass=">=0", cutoff=">0", tile=">=1")
+        require(self.far > self.near, "far", f"a value > near ({self.near})", self.far)
 
 
 def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -201,6 +206,10 @@ class FitConfig:
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
         return [round(k * self.epochs / (self.lr_decays + 1)) for k in range(1, self.lr_decays + 1)]
+
+    def __post_init__(self) -> None:
+        require_fields(self, epochs=">=0", batch=">=1", lr=">0", lr_decays=">=0", lr_gamma=">0",
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0", checkpoint_every=">=1")
 
 
 EpochCallback = Callable[[int, SurfelScene, SummaryWriter], dict[str, float]]

@@ -27,6 +27,8 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from nsplat.config import ConfigError
+from nsplat.data.pointclouds import check_ply_header
+from nsplat.errors import DataError
 
 log = logging.getLogger(__name__)
 
@@ -312,17 +314,28 @@ class SurfelScene(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"path: no PLY file at {path}")
+        check_ply_header(path)
         try:
             vertex = PlyData.read(str(path))["vertex"]
         except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
-            raise ValueError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
+            raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
         names = set(vertex.data.dtype.names)
+        if vertex.count == 0:
+            raise DataError(f"{path}: the PLY has zero vertices")
 
         def cols(keys: list[str], what: str) -> torch.Tensor:
             missing = [k for k in keys if k not in names]
             if missing:
-                raise ValueError(f"{path}: missing PLY properties {missing} needed for scene attribute {what!r}")
-            return torch.as_tensor(np.stack([np.asarray(vertex[k], np.float64) for k in keys], 1), dtype=dtype)
+                raise DataError(f"{path}: missing PLY properties {missing} needed for scene attribute {what!r}")
+            try:
+                arr = np.stack([np.asarray(vertex[k], np.float64) for k in keys], 1)
+            except (TypeError, ValueError) as exc:
+                raise DataError(f"{path}: PLY properties {keys} must be numeric scalars: {exc}") from None
+            bad = ~np.isfinite(arr).all(1)
+            if bad.any():
+                raise DataError(f"{path}: {int(bad.sum())} vertices have NaN or Inf {what}, first at vertex "
+                                f"{int(np.nonzero(bad)[0][0])}")
+            return torch.as_tensor(arr, dtype=dtype)
 
         scene = cls(cfg, vertex.count, dtype=dtype, device=device)
         raw = {"means": cols(list("xyz"), "means"), "normals": cols(["nx", "ny", "nz"], "normals"),

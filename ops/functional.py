@@ -12,8 +12,9 @@ import torch
 from .build import backend
 from .output import SplatOutput
 from .projection import Projected, project
-from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_deterministic, check_geometry, check_sampling,
-                         check_settings, inclusion_for, native_estimator)
+from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_composite_call, check_deterministic,
+                         check_geometry, check_sample_call, check_sampling, check_settings, inclusion_for,
+                         native_estimator)
 
 
 def _native_inputs(proj: Projected) -> list[torch.Tensor]:
@@ -50,6 +51,8 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
     """
     if inclusion not in INCLUSIONS:
         raise ValueError(f"inclusion: expected one of {INCLUSIONS}, got {inclusion!r}")
+    check_sample_call(proj, Ks, width, height, samples=samples, eps=eps, seed=seed, hermite_order=hermite_order,
+                      hermite_tol=hermite_tol, stratified=stratified)
     mu, con, amp, nrm, off, zc = _native_inputs(proj)
     sig2 = proj.sigma2.contiguous()
     return tuple(backend(mu.device).sample(mu, con, amp, sig2, nrm, off, zc, Ks.detach().contiguous(), width,
@@ -148,6 +151,7 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     Returns:
         ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``.
     """
+    check_composite_call(proj, features, Ks, indices, probs, background, composite, estimator, deterministic)
     if composite not in COMPOSITES:
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
     if estimator not in ESTIMATORS:

@@ -6,6 +6,7 @@ from torch import nn
 
 from .functional import splat
 from .output import SplatOutput
+from .validation import COMPOSITES, check_deterministic, check_range, check_sampling
 
 
 class Splatter(nn.Module):
@@ -26,6 +27,12 @@ class Splatter(nn.Module):
                  hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
                  stratified: bool = False) -> None:
         super().__init__()
+        check_sampling(samples=samples, eps=eps, estimator=estimator, seed=base_seed, hermite_order=hermite_order,
+                       hermite_tol=hermite_tol, stratified=stratified)  # fail at construction, not at the first forward
+        check_range(near=near, far=far, lowpass=lowpass)
+        if composite not in COMPOSITES:
+            raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
+        check_deterministic(deterministic)
         self.samples, self.eps, self.estimator, self.composite = samples, eps, estimator, composite
         self.near, self.far, self.lowpass, self.base_seed = near, far, lowpass, base_seed
         self.hermite_order, self.hermite_tol = hermite_order, hermite_tol

@@ -17,6 +17,8 @@ import dataclasses
 
 import torch
 
+from .validation import check_geometry, check_projection_numerics, check_range
+
 ALPHA_MAX = 0.99
 #: A ray whose cosine with a splat's plane normal is below this uses the splat's centre depth.
 PARALLEL_COS = 1e-2
@@ -83,7 +85,12 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
         scales: ``[N,2]`` tangent std-devs (world units). opacities: ``[N]`` in [0, 1].
         viewmats: ``[B,4,4]`` world→camera. Ks: ``[B,3,3]`` intrinsics (pixels).
         near, far: clipping range on the centre depth. lowpass: screen-space low-pass variance (px²).
+
+    Raises ``TypeError``/``ValueError`` naming the argument for invalid inputs (as :func:`nsplat.ops.splat`)
+    and for the float hazards of ``ops/validation.py::check_projection_numerics``.
     """
+    check_geometry(means, normals, scales, opacities, None, viewmats, Ks)
+    check_range(near=near, far=far, lowpass=lowpass)
     R = viewmats[:, :3, :3]
     t = viewmats[:, :3, 3]
     q = torch.einsum("bij,nj->bni", R, means) + t[:, None, :]
@@ -118,6 +125,9 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     s01 = cov[..., 0, 1]
     s11 = cov[..., 1, 1] + lowpass
     det = s00 * s11 - s01 * s01
+    grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, normals, scales, viewmats, Ks))
+    check_projection_numerics(in_range=in_range, detJ=detJ, det=det, means2d=means2d, lowpass=float(lowpass),
+                              differentiable=grads)
     valid = in_range & (detJ != 0) & (det > 0)
     dets = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([s11 / dets, -s01 / dets, s00 / dets], dim=-1)

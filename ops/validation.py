@@ -7,6 +7,7 @@ what was expected.
 from __future__ import annotations
 
 import numbers
+import os
 
 import torch
 
@@ -18,6 +19,17 @@ ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
 INCLUSIONS = ("threshold", "pips")
 COMPOSITES = ("alpha", "additive")
 FLOAT_DTYPES = (torch.float32, torch.float64)
+#: Largest ``samples``: the native sampler counts slots of a pixel in 32-bit ints.
+MAX_SAMPLES = 2**31 - 1
+#: Allowed deviation of ``R·Rᵀ`` from ``s²·I`` (relative to ``s²``) for a viewmat's 3×3 part ``R``.
+RIGID_TOL = {torch.float32: 1e-4, torch.float64: 1e-5}
+#: float32, no low-pass: a visible splat whose ``det Σ`` (px⁴) is in ``(0, this)`` gets NaN/Inf gradients
+#: (measured: NaN from ``det Σ ≈ 1e-28``, i.e. σ ≈ 1e-7 px; fine at 1e-24); four decades of margin.
+TINY_DET_F32 = 1e-20
+
+
+class AllocationError(ValueError):
+    """The outputs or workspace of a call cannot fit in this machine's memory (raised before allocating)."""
 
 
 def _tensor(name: str, t: object) -> torch.Tensor:
@@ -57,14 +69,18 @@ def _real(name: str, v: object) -> float:
 
 
 def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) -> tuple[int, int, int]:
-    """Check the scene and camera tensors; returns ``(N, C, B)``.
+    """Check the scene and camera tensors; returns ``(N, C, B)`` (``C = 0`` when ``features`` is None).
 
     Shapes: ``means [N,3]``, ``normals [N,3]`` (non-zero), ``scales [N,2]`` (> 0),
-    ``opacities [N]`` (in [0, 1]), ``features [N,C]``, ``viewmats [B,4,4]`` (last row 0 0 0 1),
-    ``Ks [B,3,3]`` (``fx, fy > 0``, last row 0 0 1, ``K[1,0] = 0``); one float dtype and one device.
+    ``opacities [N]`` (in [0, 1]), ``features [N,C]``, ``viewmats [B,4,4]`` (last row 0 0 0 1, 3×3 part a
+    rotation times a uniform scale), ``Ks [B,3,3]`` (``fx, fy > 0``, last row 0 0 1, ``K[1,0] = 0``);
+    one float dtype and one device.
     """
     names = ("means", "normals", "scales", "opacities", "features", "viewmats", "Ks")
-    tensors = [_tensor(n, t) for n, t in zip(names, (means, normals, scales, opacities, features, viewmats, Ks))]
+    given = (means, normals, scales, opacities, features, viewmats, Ks)
+    if features is None:
+        names, given = names[:4] + names[5:], given[:4] + given[5:]
+    tensors = [_tensor(n, t) for n, t in zip(names, given)]
     dtype, device = tensors[0].dtype, tensors[0].device
     for n, t in zip(names, tensors):
         if t.dtype != dtype:
@@ -76,7 +92,7 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     _shape("normals", normals, (N, 3), f"[N, 3] with N={N}")
     _shape("scales", scales, (N, 2), f"[N, 2] with N={N}")
     _shape("opacities", opacities, (N,), f"[N] with N={N}")
-    if features.dim() != 2 or features.shape[0] != N or features.shape[1] < 1:
+    if features is not None and (features.dim() != 2 or features.shape[0] != N or features.shape[1] < 1):
         raise ValueError(f"features: expected shape [N, C] with N={N} and C >= 1, got {list(features.shape)}")
     if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4) or viewmats.shape[0] < 1:
         raise ValueError(f"viewmats: expected shape [B, 4, 4] with B >= 1, got {list(viewmats.shape)}")
@@ -100,13 +116,30 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
         raise ValueError("Ks: expected K[1, 0] == 0 (upper-triangular intrinsics)")
     if bool(((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any()):
         raise ValueError("Ks: expected focal lengths fx = K[0,0] > 0 and fy = K[1,1] > 0")
-    return N, features.shape[1], B
+    check_rigid(viewmats)
+    return N, (features.shape[1] if features is not None else 0), B
 
 
-def check_settings(*, width, height, near, far, lowpass, composite, background, C, dtype, device) -> None:
-    """Check image size, clipping range, low-pass variance, compositing mode and background."""
-    _int("width", width, 1)
-    _int("height", height, 1)
+def check_rigid(viewmats: torch.Tensor) -> None:
+    """The 3×3 part ``R`` of every viewmat must be a rotation (or reflection) times a uniform scale ``s > 0``:
+    ``R·Rᵀ = s²·I`` up to :data:`RIGID_TOL`. Shear or non-uniform scale would transform the normals
+    wrongly (they are rotated by ``R``), so they are rejected, naming the first bad camera."""
+    R = viewmats[:, :3, :3].detach()
+    G = R @ R.transpose(1, 2)
+    s2 = G.diagonal(dim1=1, dim2=2).mean(-1)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    dev = (G - s2[:, None, None] * eye).abs().amax(dim=(1, 2)) / torch.where(s2 > 0, s2, torch.ones_like(s2))
+    tol = RIGID_TOL[R.dtype]
+    bad = (s2 <= 0) | ~(dev <= tol)
+    if bool(bad.any()):
+        b = int(torch.nonzero(bad)[0, 0])
+        raise ValueError(f"viewmats: camera {b}: the 3x3 part is not a rotation times a uniform scale "
+                         f"(|R Rᵀ - s² I| / s² = {float(dev[b]):.3g} > {tol:g}); shear and non-uniform scale "
+                         f"are not supported (normals would be transformed wrongly)")
+
+
+def check_range(*, near, far, lowpass) -> None:
+    """Check the clipping range ``0 < near < far`` and the low-pass variance ``>= 0``."""
     n, f = _real("near", near), _real("far", far)
     if n <= 0:
         raise ValueError(f"near: expected a value > 0, got {near}")
@@ -114,6 +147,13 @@ def check_settings(*, width, height, near, far, lowpass, composite, background, 
         raise ValueError(f"far: expected a value > near ({near}), got {far}")
     if _real("lowpass", lowpass) < 0:
         raise ValueError(f"lowpass: expected a variance >= 0 (pixels^2), got {lowpass}")
+
+
+def check_settings(*, width, height, near, far, lowpass, composite, background, C, dtype, device) -> None:
+    """Check image size, clipping range, low-pass variance, compositing mode and background."""
+    _int("width", width, 1)
+    _int("height", height, 1)
+    check_range(near=near, far=far, lowpass=lowpass)
     if composite not in COMPOSITES:
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
     if background is not None:
@@ -140,7 +180,8 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol,
     """Check the sampler and estimator settings."""
     if not isinstance(stratified, bool):
         raise TypeError(f"stratified: expected a bool, got {type(stratified).__name__}")
-    _int("samples", samples, 1)
+    if _int("samples", samples, 1) > MAX_SAMPLES:
+        raise ValueError(f"samples: expected an int in [1, {MAX_SAMPLES}], got {samples}")
     e = _real("eps", eps)
     if not 0 < e <= 1:
         raise ValueError(f"eps: expected a probability in (0, 1], got {eps}")
@@ -161,3 +202,162 @@ def check_deterministic(deterministic) -> None:
     """``deterministic`` must be a bool (fixed-order backward vs atomic-scatter backward)."""
     if not isinstance(deterministic, bool):
         raise TypeError(f"deterministic: expected a bool, got {type(deterministic).__name__}")
+
+
+def memory_limit(device: torch.device) -> int:
+    """Bytes a single call may at most allocate: the device's total memory (physical RAM on CPU)."""
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 2**40
+
+
+def check_allocation(*, B: int, N: int, C: int, width: int, height: int, samples: int, dtype: torch.dtype,
+                     device: torch.device, what: str = "sample") -> int:
+    """Raise :class:`AllocationError` before allocating when a call's outputs and workspace exceed the
+    device's memory; returns the bytes needed. Python ints throughout (no 32-bit wrap).
+
+    ``what``: ``"sample"`` (indices, π, Λ̂, work per pixel and the tree per point) or ``"composite"``
+    (image, alpha, depth and the backward's per-slot derivatives).
+    """
+    S = torch.empty((), dtype=dtype).element_size()
+    pixels = int(B) * int(height) * int(width)
+    slots = pixels * int(samples)
+    if what == "sample":
+        need = slots * (4 + S) + pixels * (S + 4) + int(B) * int(N) * 256
+    else:
+        need = pixels * (int(C) + 2) * S + slots * (2 * S + 16)
+    limit = memory_limit(device)
+    if need > limit:
+        raise AllocationError(
+            f"width/height/samples: {B} camera(s) x {width}x{height} px x samples={samples} need about "
+            f"{need / 2**30:.3g} GiB ({need} bytes) for the {what} stage, more than the {limit / 2**30:.3g} GiB "
+            f"of memory of {device}; reduce width, height, samples or the number of cameras")
+    return need
+
+
+def check_projected(proj, Ks: torch.Tensor) -> tuple[int, int]:
+    """Check a :class:`~nsplat.ops.projection.Projected` (from :func:`project` or hand-made) and ``Ks``;
+    returns ``(B, N)``. Every field is ``[B, N, ...]``, finite, of one float dtype and device."""
+    fields = {"means2d": 2, "conics": 3, "amps": None, "normals_cam": 3, "plane_offsets": None, "depths": None,
+              "sigma2": None}
+    for name in (*fields, "valid"):
+        if not isinstance(getattr(proj, name, None), torch.Tensor):
+            raise TypeError(f"proj.{name}: expected a torch.Tensor (proj must come from nsplat.ops.project)")
+    amps = _tensor("proj.amps", proj.amps)
+    if amps.dim() != 2:
+        raise ValueError(f"proj.amps: expected shape [B, N], got {list(amps.shape)}")
+    B, N = amps.shape
+    if B < 1:
+        raise ValueError("proj: expected at least one camera (B >= 1)")
+    for name, last in fields.items():
+        t = _tensor(f"proj.{name}", getattr(proj, name))
+        if t.dtype != amps.dtype or t.device != amps.device:
+            raise TypeError(f"proj.{name}: expected {amps.dtype} on {amps.device} (as proj.amps), got {t.dtype} "
+                            f"on {t.device}")
+        want = (B, N) if last is None else (B, N, last)
+        _shape(f"proj.{name}", t, want, f"{list(want)}")
+        _finite(f"proj.{name}", t)
+    if tuple(proj.valid.shape) != (B, N):
+        raise ValueError(f"proj.valid: expected shape {[B, N]}, got {list(proj.valid.shape)}")
+    if bool((proj.amps < 0).any()) or bool((proj.sigma2 < 0).any()):
+        raise ValueError("proj.amps, proj.sigma2: expected values >= 0")
+    _tensor("Ks", Ks)
+    if Ks.device != amps.device:
+        raise ValueError(f"Ks: expected device {amps.device} (the device of proj), got {Ks.device}")
+    _shape("Ks", Ks, (B, 3, 3), f"[B, 3, 3] with B={B} (the cameras of proj)")
+    _finite("Ks", Ks)
+    return B, N
+
+
+def check_sample_call(proj, Ks, width, height, *, samples, eps, seed, hermite_order, hermite_tol,
+                      stratified=False) -> None:
+    """All checks of the public :func:`nsplat.ops.sample` stage, memory included."""
+    B, N = check_projected(proj, Ks)
+    _int("width", width, 1)
+    _int("height", height, 1)
+    check_sampling(samples=samples, eps=eps, estimator="ht", seed=seed, hermite_order=hermite_order,
+                   hermite_tol=hermite_tol, stratified=stratified)
+    check_allocation(B=B, N=N, C=0, width=width, height=height, samples=samples, dtype=proj.amps.dtype,
+                     device=proj.amps.device, what="sample")
+
+
+def check_composite_call(proj, features, Ks, indices, probs, background, composite, estimator,
+                         deterministic) -> None:
+    """All checks of the public :func:`nsplat.ops.composite_sample` stage (index range included)."""
+    B, N = check_projected(proj, Ks)
+    dtype, device = proj.amps.dtype, proj.amps.device
+    feat = _tensor("features", features)
+    if feat.dtype != dtype or feat.device != device:
+        raise TypeError(f"features: expected {dtype} on {device} (as proj), got {feat.dtype} on {feat.device}")
+    if feat.dim() != 2 or feat.shape[0] != N or feat.shape[1] < 1:
+        raise ValueError(f"features: expected shape [N, C] with N={N} (the points of proj) and C >= 1, "
+                         f"got {list(feat.shape)}")
+    _finite("features", feat)
+    if composite not in COMPOSITES:
+        raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
+    check_deterministic(deterministic)
+    if not isinstance(indices, torch.Tensor) or indices.dtype != torch.int32 or indices.dim() != 4:
+        got = f"{indices.dtype} {list(indices.shape)}" if isinstance(indices, torch.Tensor) else type(indices).__name__
+        raise TypeError(f"indices: expected an int32 tensor [B,H,W,m], got {got}")
+    if indices.device != device:
+        raise ValueError(f"indices: expected device {device}, got {indices.device}")
+    if indices.shape[0] != B or min(indices.shape[1:]) < 1:
+        raise ValueError(f"indices: expected shape [B,H,W,m] with B={B} (the cameras of proj) and H, W, m >= 1, "
+                         f"got {list(indices.shape)}")
+    if indices.numel() and bool(((indices < -1) | (indices >= N)).any()):
+        raise ValueError(f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} points), got "
+                         f"[{int(indices.min())}, {int(indices.max())}]")
+    p = _tensor("probs", probs)
+    if p.dtype != dtype or p.device != device or p.shape != indices.shape:
+        raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {dtype} on {device}, "
+                         f"got {list(p.shape)} {p.dtype} on {p.device}")
+    _finite("probs", p)
+    filled = indices >= 0
+    if bool(((p <= 0) & filled).any()) or bool((p > 1).any()) or bool((p < 0).any()):
+        raise ValueError("probs: expected inclusion probabilities in (0, 1] for filled slots and in [0, 1] for "
+                         "empty ones")
+    if background is not None:
+        _tensor("background", background)
+        if background.dtype != dtype or background.device != device:
+            raise TypeError(f"background: expected {dtype} on {device}, got {background.dtype} on {background.device}")
+        _shape("background", background, (feat.shape[1],), f"[C] with C={feat.shape[1]}")
+        _finite("background", background)
+    _, H, W, m = indices.shape
+    check_allocation(B=B, N=N, C=feat.shape[1], width=W, height=H, samples=m, dtype=dtype, device=device,
+                     what="composite")
+
+
+def check_projection_numerics(*, in_range: torch.Tensor, detJ: torch.Tensor, det: torch.Tensor,
+                              means2d: torch.Tensor, lowpass: float, differentiable: bool) -> None:
+    """Refuse the float hazards of the projection instead of returning a silently wrong result.
+
+    * A visible (in-range, not edge-on) splat whose screen covariance or centre overflows the dtype
+      would be dropped silently (float32 from σ ≈ 10¹⁰ px): raise naming ``scales`` and the points.
+    * float32 with ``lowpass < 1e-12``: a visible splat with ``0 < det Σ < 1e-20`` px⁴ (σ ≲ 10⁻⁵ px) has
+      NaN/Inf gradients; raised only when the projection is differentiated.
+    """
+    live = in_range & (detJ != 0)
+    huge = live & ~(torch.isfinite(det) & torch.isfinite(detJ) & torch.isfinite(means2d).all(-1))
+    if bool(huge.any()):
+        b, idx = _points(huge)
+        raise ValueError(f"scales: points {idx} (camera {b}) project to splats too large or too far off-screen "
+                         f"for {det.dtype} (the screen covariance or centre overflows) and would be dropped "
+                         f"silently; use float64, smaller scales, or cull them with near/far")
+    if differentiable and det.dtype == torch.float32 and lowpass < 1e-12:
+        tiny = live & (det > 0) & (det < TINY_DET_F32)
+        if bool(tiny.any()):
+            b, idx = _points(tiny)
+            raise ValueError(f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
+                             f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
+                             f"lowpass >= 1e-12 or float64")
+
+
+def _points(mask: torch.Tensor, limit: int = 10) -> tuple[int, list[int]]:
+    """First camera with a set entry of ``mask [B, N]`` and (up to ``limit``) point indices there."""
+    b = int(torch.nonzero(mask.any(-1))[0, 0])
+    return b, torch.nonzero(mask[b])[:limit, 0].tolist()

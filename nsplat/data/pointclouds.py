@@ -12,6 +12,8 @@ import numpy as np
 import torch
 from plyfile import PlyData
 
+from nsplat.errors import DataError
+
 #: Shape name → file name inside ``dss_pointclouds/``.
 DSS_SHAPES: dict[str, str] = {
     "bunny": "bunny-8000.ply",
@@ -49,31 +51,72 @@ class PointCloud:
         return float((self.points - self.center).norm(dim=-1).max())
 
 
+def check_ply_header(path: Path) -> None:
+    """Reject PLY headers that make plyfile crash the process or misbehave, before it parses the file.
+
+    An element without properties in a binary file makes numpy divide by a zero item size (SIGFPE), so
+    every element must declare at least one property and a non-negative integer count.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise DataError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the first 64 KiB)")
+    element, props = None, 0
+    for raw in head[:end].split(b"\n")[1:]:
+        words = raw.decode("ascii", "replace").split()
+        if not words:
+            continue
+        if words[0] == "element":
+            if element is not None and props == 0:
+                raise DataError(f"{path}: PLY element {element!r} declares no properties")
+            if len(words) != 3 or not words[2].isdigit():
+                raise DataError(f"{path}: malformed PLY element line {' '.join(words)!r} "
+                                f"(expected 'element NAME COUNT')")
+            element, props = words[1], 0
+        elif words[0] == "property":
+            props += 1
+    if element is not None and props == 0:
+        raise DataError(f"{path}: PLY element {element!r} declares no properties")
+
+
 def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> PointCloud:
     """Read ``x y z nx ny nz`` from the ``vertex`` element of a PLY; normals are normalised.
 
-    Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming missing properties or
-    zero-length normals.
+    Raises ``FileNotFoundError`` for a missing file and :class:`~nsplat.errors.DataError` (a ``ValueError``)
+    naming the file for unreadable files, missing properties, zero vertices, NaN/Inf values or zero-length
+    normals.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no PLY file at {path}")
+    check_ply_header(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
-        raise ValueError(f"{path}: not a readable PLY file (truncated or corrupt?): {exc}") from exc
+        raise DataError(f"{path}: not a readable PLY file (truncated or corrupt?): {exc}") from exc
     if "vertex" not in [e.name for e in ply.elements]:
-        raise ValueError(f"{path}: no 'vertex' element")
+        raise DataError(f"{path}: no 'vertex' element")
     v = ply["vertex"]
     names = set(v.data.dtype.names)
     missing = [k for k in ("x", "y", "z", "nx", "ny", "nz") if k not in names]
     if missing:
-        raise ValueError(f"{path}: missing vertex properties {missing}")
-    pts = np.stack([np.asarray(v[k], np.float64) for k in ("x", "y", "z")], 1)
-    nrm = np.stack([np.asarray(v[k], np.float64) for k in ("nx", "ny", "nz")], 1)
+        raise DataError(f"{path}: missing vertex properties {missing}")
+    try:
+        pts = np.stack([np.asarray(v[k], np.float64) for k in ("x", "y", "z")], 1)
+        nrm = np.stack([np.asarray(v[k], np.float64) for k in ("nx", "ny", "nz")], 1)
+    except (TypeError, ValueError) as exc:  # list properties, non-numeric data
+        raise DataError(f"{path}: vertex properties x y z nx ny nz must be numeric scalars: {exc}") from None
+    if pts.shape[0] == 0:
+        raise DataError(f"{path}: the PLY has zero vertices")
+    for what, arr in (("coordinates (x y z)", pts), ("normals (nx ny nz)", nrm)):
+        bad = ~np.isfinite(arr).all(1)
+        if bad.any():
+            raise DataError(f"{path}: {int(bad.sum())} vertices have NaN or Inf {what}, first at vertex "
+                            f"{int(np.nonzero(bad)[0][0])}")
     length = np.linalg.norm(nrm, axis=1)
     if (length == 0).any():
-        raise ValueError(f"{path}: {int((length == 0).sum())} vertices have zero-length normals")
+        raise DataError(f"{path}: {int((length == 0).sum())} vertices have zero-length normals")
     nrm = nrm / length[:, None]
     return PointCloud(torch.as_tensor(pts, dtype=dtype), torch.as_tensor(nrm, dtype=dtype), path.stem)
 

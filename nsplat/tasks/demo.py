@@ -13,8 +13,10 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from nsplat.config import require, require_fields
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.ops import splat, splat_dense
+from nsplat.ops.validation import memory_limit
 from nsplat.runctx import RunContext
 
 log = logging.getLogger("nsplat.demo")
@@ -33,6 +35,14 @@ class Config:
     eps: float = 0.01
     compare_dense: bool = False
 
+    def __post_init__(self) -> None:
+        require_fields(self, points=">=1", resolution=">=1", views=">=1", samples=">=1", eps="prob")
+        need = self.points * 256 + self.views * (512 + self.resolution**2 * (self.samples * 12 + 64))
+        limit = memory_limit(torch.device("cpu"))
+        require(need <= limit, "points/views/resolution/samples",
+                f"a scene and images that fit in memory (about {need / 2**30:.3g} GiB needed, {limit / 2**30:.3g} GiB "
+                f"available)", [self.points, self.views, self.resolution, self.samples])
+
 
 def demo_scene(n: int, seed: int = 0) -> dict[str, torch.Tensor]:
     """A checker-textured sphere of surfels on a striped ground disc: ``n`` points, RGB features."""
@@ -50,8 +60,8 @@ def demo_scene(n: int, seed: int = 0) -> dict[str, torch.Tensor]:
     stripe = ((torch.floor(r * 5)) % 2)[:, None]
     col_d = stripe * torch.tensor([0.2, 0.4, 0.8]) + (1 - stripe) * torch.tensor([0.8, 0.85, 0.9])
     normals = torch.cat([d, torch.tensor([0.0, 0.0, 1.0]).expand(n_disc, 3)])
-    spacing = torch.cat([torch.full((n_sphere,), math.sqrt(4 * math.pi * 0.36 / n_sphere)),
-                         torch.full((n_disc,), math.sqrt(math.pi * 2.56 / n_disc))])
+    spacing = torch.cat([torch.full((n_sphere,), math.sqrt(4 * math.pi * 0.36 / max(n_sphere, 1))),
+                         torch.full((n_disc,), math.sqrt(math.pi * 2.56 / max(n_disc, 1)))])
     return dict(means=torch.cat([sphere, disc]), normals=normals, scales=(0.6 * spacing)[:, None].repeat(1, 2),
                 opacities=torch.full((n,), 0.9), features=torch.cat([col_s, col_d]))
 

@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from nsplat.cameras import look_at
 from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
-from nsplat.config import ConfigError
+from nsplat.config import ConfigError, require_fields
 from nsplat.data.nerf_synthetic import Views, load_split
 from nsplat.data.procedural import ProceduralSpec, ensure_scene
 from nsplat.data.visual_hull import hull_points
@@ -71,6 +71,9 @@ class ProceduralConfig:
     views: tuple[int, int, int] = (40, 8, 8)
     objects: int = 4
     cache_dir: str = "data_cache"
+
+    def __post_init__(self) -> None:
+        require_fields(self, resolution=">=1", views=">=1", objects=">=1")
 
 
 @dataclasses.dataclass

@@ -25,7 +25,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.checkpoint import load_checkpoint
-from nsplat.config import ConfigError
+from nsplat.config import ConfigError, require_fields
 from nsplat.data.pointclouds import DSS_SHAPES, PointCloud, load_dss_shape
 from nsplat.metrics import point_cloud_distances
 from nsplat.reconstruct import FitConfig, RenderConfig, fit
@@ -91,6 +91,9 @@ class InitConfig:
     radius: float = 1.1
     albedo: float = 0.5
     scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        require_fields(self, count=">=1", radius=">0", scale=">0")
 
 
 @dataclasses.dataclass
@@ -245,7 +248,7 @@ def _finish(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) ->
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(obj, indent=2))
     os.replace(tmp, path)
 

@@ -1,0 +1,253 @@
+"""Issue 14, run and CLI classes 1-3, 8 and 9: a run folder belongs to one run, concurrent runs are
+refused, resume never changes a run, and every user error is one line on stderr with exit code 2 (no
+traceback), naming the culprit, with nothing pre-existing changed."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from nsplat.checkpoint import load_checkpoint, rotate_checkpoints, save_checkpoint
+from nsplat.cli import main as cli_main
+from nsplat.config import ConfigError, load_config, read_yaml
+from nsplat.runctx import RunLock
+from nsplat.tasks.demo import Config as DemoConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ["--config", str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6", "views=1", "samples=2"]
+
+
+def folder_hash(folder: Path) -> str:
+    """Hash of every path and file content under ``folder`` (the lock file's pid excluded)."""
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        h.update(str(p.relative_to(folder)).encode())
+        if p.is_file() and p.name != ".lock":
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def run_cli(capsys, *args: str) -> tuple[int, str]:
+    code = cli_main(list(args))
+    return code, capsys.readouterr().err
+
+
+def one_line_error(err: str) -> str:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _tiny_reconstruct(tmp: Path, epochs: int = 3, name: str = "tiny.yaml") -> Path:
+    cfg = {"task": "reconstruct", "seed": 0,
+           "data": {"shape": "bunny", "views": 2, "width": 12, "height": 12, "cache_dir": str(tmp / "cache")},
+           "init": {"count": 40}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
+                                           "opacity": 1.0},
+           "render": {"renderer": "splat", "samples": 3},
+           "optim": {"epochs": epochs, "batch": 2, "reposition": False, "checkpoint_every": 1},
+           "eval_every": 1000, "renders": 0}
+    path = tmp / name
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+# ------------------------------------------------------------------- 1. re-running into a finished run
+def test_rerun_into_finished_run_is_refused_and_changes_nothing(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert run_cli(capsys, *DEMO, "--run", str(run))[0] == 0
+    before = folder_hash(run)
+    code, err = run_cli(capsys, *DEMO, "seed=3", "--run", str(run))
+    line = one_line_error(err)
+    assert code == 2 and str(run) in line and "--resume" in line and "--overwrite" in line
+    assert folder_hash(run) == before
+
+
+def test_overwrite_replaces_the_previous_run(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert run_cli(capsys, *DEMO, "--run", str(run))[0] == 0
+    (run / "old-output.txt").write_text("from the previous run")
+    assert run_cli(capsys, *DEMO, "seed=3", "--run", str(run), "--overwrite")[0] == 0
+    assert not (run / "old-output.txt").exists()
+    assert read_yaml(run / "config.yaml")["seed"] == 3
+
+
+def test_rotation_never_removes_the_current_run_or_latest(tmp_path):
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    for step in (50, 60):  # a previous run's higher-step files (e.g. copied in): not this run's past
+        torch.save({"x": step}, folder / f"ckpt-{step:08d}.pt")
+    for step in (1, 2, 3):
+        save_checkpoint(tmp_path, step, {"x": torch.tensor(step)}, keep=2)
+    names = sorted(p.name for p in folder.glob("ckpt-*.pt"))
+    assert names == ["ckpt-00000002.pt", "ckpt-00000003.pt", "ckpt-00000050.pt", "ckpt-00000060.pt"]
+    assert int(load_checkpoint(tmp_path)["x"]) == 3  # latest names an existing file
+    (folder / "latest").write_text("ckpt-00000002.pt")  # latest names an older file: it is kept
+    assert rotate_checkpoints(folder, 3, keep=1) == []
+
+
+# ------------------------------------------------------------------------- 2. two processes, one folder
+HOLDER = "import sys, time; from nsplat.runctx import RunLock; RunLock(sys.argv[1]).acquire(); " \
+         "print('locked', flush=True); time.sleep(60)"
+
+
+def _env() -> dict[str, str]:
+    return dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+
+
+def test_locked_run_folder_is_refused_naming_the_holder_and_stale_lock_is_taken(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(run)], env=_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = folder_hash(run)
+        code, err = run_cli(capsys, *DEMO, "--run", str(run))
+        line = one_line_error(err)
+        assert code == 2 and str(run) in line and f"process {holder.pid}" in line
+        assert folder_hash(run) == before
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder died without cleaning up: its lock file stays, its lock is gone
+    assert (run / ".lock").read_text().strip() == str(holder.pid)
+    assert run_cli(capsys, *DEMO, "--run", str(run))[0] == 0
+    assert (run / "demo.png").is_file()
+
+
+def test_two_trainings_started_together_one_is_refused(tmp_path):
+    cfg = _tiny_reconstruct(tmp_path, epochs=6)
+    run = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(cfg), "--run", str(run)]
+    first = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 120
+    while not ((run / ".lock").is_file() and (run / ".lock").read_text().strip()) and time.time() < deadline:
+        time.sleep(0.05)
+    second = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    out = first.communicate(timeout=300)[0]
+    assert first.returncode == 0, out[-3000:]
+    assert second.returncode == 2, second.stderr[-3000:]
+    line = one_line_error(second.stderr)
+    assert str(run) in line and f"process {first.pid}" in line
+    assert int(load_checkpoint(run)["step"]) == 6  # the survivor's results are intact
+
+
+def test_cleanup_removes_only_temporaries_of_dead_processes(tmp_path):
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (folder / f".ckpt-00000009.pt.tmp-{dead.pid}").write_bytes(b"partial")
+        (folder / f".ckpt-00000009.pt.tmp-{live.pid}").write_bytes(b"in flight")
+        save_checkpoint(tmp_path, 1, {"x": torch.tensor(1)})
+        assert not (folder / f".ckpt-00000009.pt.tmp-{dead.pid}").exists()
+        assert (folder / f".ckpt-00000009.pt.tmp-{live.pid}").read_bytes() == b"in flight"
+    finally:
+        live.kill()
+        live.wait()
+
+
+# ------------------------------------------------------------------ 3. resume with incompatible overrides
+def test_resume_with_a_changed_config_is_refused_before_writing(tmp_path, capsys):
+    cfg = _tiny_reconstruct(tmp_path, epochs=2)
+    run = tmp_path / "run"
+    assert run_cli(capsys, "--config", str(cfg), "--run", str(run))[0] == 0
+    before = folder_hash(run)
+    code, err = run_cli(capsys, "--resume", "--run", str(run), "init.count=64", "render.samples=5")
+    line = one_line_error(err)
+    assert code == 2 and "init.count" in line and "render.samples" in line and str(run) in line
+    assert folder_hash(run) == before
+    assert run_cli(capsys, "--resume", "--run", str(run))[0] == 0  # an unchanged resume still works
+    assert run_cli(capsys, "eval", "--run", str(run))[0] == 0
+    assert json.loads((run / "metrics.json").read_text())["chamfer"] > 0
+
+
+# --------------------------------------------------------------- 8. user errors: one line, exit 2, no run
+@pytest.mark.parametrize("override,key", [("resolution=0", "resolution"), ("views=0", "views"),
+                                          ("points=0", "points"), ("points=-5", "points"), ("eps=.nan", "eps"),
+                                          ("samples=0", "samples")])
+def test_impossible_config_values_exit_2_naming_the_key(tmp_path, capsys, override, key):
+    code, err = run_cli(capsys, *DEMO, override, "--run", str(tmp_path / "run"))
+    line = one_line_error(err)
+    assert code == 2 and line.startswith(f"config error: {key}: expected")
+    assert not (tmp_path / "run").exists()
+
+
+def test_bad_data_file_exits_2_naming_it_and_leaves_no_run_folder(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    (scene / "train").mkdir(parents=True)
+    frame = {"file_path": "./train/r_0", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}
+    (scene / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": [frame]}))
+    cfg = {"task": "neural", "data": {"source": "nerf_synthetic", "root": str(scene)}}
+    (tmp_path / "n.yaml").write_text(yaml.safe_dump(cfg))
+    code, err = run_cli(capsys, "--config", str(tmp_path / "n.yaml"), "--run", str(tmp_path / "run"))
+    line = one_line_error(err)
+    assert code == 2 and "transforms_train.json: frame 0: field 'transform_matrix'" in line and "4x4" in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_binary_config_exits_2_naming_the_file(tmp_path, capsys):
+    (tmp_path / "b.yaml").write_bytes(bytes(range(256)) * 4)
+    code, err = run_cli(capsys, "--config", str(tmp_path / "b.yaml"), "--run", str(tmp_path / "run"))
+    assert code == 2 and str(tmp_path / "b.yaml") in one_line_error(err)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["evaluate", "--run", "X"], "unknown command 'evaluate'; valid commands: train, eval, render"),
+    (["views=0"], "views: expected a value >= 1"),
+    (["--config", "BINARY"], "is not UTF-8 text"),
+])
+def test_user_errors_print_no_traceback_in_a_real_process(tmp_path, args, needle):
+    (tmp_path / "bin.yaml").write_bytes(b"\xff\xfe\x00binary")
+    args = [str(tmp_path / "bin.yaml") if a == "BINARY" else a for a in args]
+    if "views=0" in args:
+        args = [*DEMO, *args]
+    r = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, "--run", str(tmp_path / "run")],
+                       cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert needle in one_line_error(r.stderr)
+    assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------------------------------ 9. config parsing
+def test_duplicate_yaml_keys_are_an_error_naming_the_key(tmp_path, capsys):
+    (tmp_path / "d.yaml").write_text("task: demo\npoints: 100\nviews: 1\npoints: 200\n")
+    code, err = run_cli(capsys, "--config", str(tmp_path / "d.yaml"), "--run", str(tmp_path / "run"))
+    assert code == 2 and "duplicate key 'points'" in one_line_error(err)
+
+
+def test_exponent_floats_are_numbers(tmp_path):
+    (tmp_path / "e.yaml").write_text("task: demo\neps: 1e-3\n")
+    assert load_config(DemoConfig, read_yaml(tmp_path / "e.yaml")).eps == 1e-3
+    assert load_config(DemoConfig, {"task": "demo"}, ["eps=5E-2"]).eps == 0.05
+    with pytest.raises(ConfigError, match="eps: expected a number"):
+        load_config(DemoConfig, {"task": "demo"}, ["eps=1e-3x"])
+
+
+def test_options_may_come_after_overrides(tmp_path, capsys):
+    run = tmp_path / "run"
+    code, _ = run_cli(capsys, "views=1", "--run", str(run), "samples=2", "--config",
+                      str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6")
+    assert code == 0
+    saved = read_yaml(run / "config.yaml")
+    assert (saved["views"], saved["samples"], saved["points"]) == (1, 2, 60)
+
+
+def test_nested_range_errors_carry_the_section_prefix(tmp_path, capsys):
+    code, err = run_cli(capsys, "--config", str(_tiny_reconstruct(tmp_path)), "--run", str(tmp_path / "run"),
+                        "optim.batch=0")
+    assert code == 2 and one_line_error(err) == "config error: optim.batch: expected a value >= 1, got 0"
+    with pytest.raises(ConfigError, match=r"^x\.y\.samples: expected a value >= 1, got 0"):
+        from nsplat.config import from_dict
+        from nsplat.reconstruct import RenderConfig
+        from_dict(RenderConfig, {"samples": 0}, prefix="x.y.")
