@@ -7,6 +7,9 @@ Usage::
     python train.py --config configs/lego.yaml --run runs/lego --resume
     python train.py eval --run runs/lego --split test
     python train.py render --run runs/lego
+    python train.py view --run runs/lego                 # web viewer (nsplat/viewer), --help for options
+    python train.py export --run runs/lego --format ply  # or npz
+    python train.py --config configs/lego.yaml viewer=true   # live view while training
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ import yaml
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
+from nsplat.viewer import live
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
@@ -58,7 +62,11 @@ def _device(name: str | None) -> torch.device:
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    args = _parse(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("view", "export"):  # own options: nsplat/viewer/commands.py
+        from nsplat.viewer.commands import main as viewer_main
+        return viewer_main(argv[0], argv[1:])
+    args = _parse(argv)
     try:
         if args.command == "train":
             return _train(args)
@@ -78,7 +86,8 @@ def _train(args: argparse.Namespace) -> int:
     if "task" not in raw:
         raise ConfigError("config has no 'task' key")
     task = get_task(raw["task"])
-    cfg = load_config(task.Config, raw, args.overrides)
+    overrides, live_opts = live.split_overrides(args.overrides)
+    cfg = load_config(task.Config, raw, overrides)
     seed = args.seed if args.seed is not None else int(getattr(cfg, "seed", 0))
     if args.run is None:
         stem = (args.config or DEFAULT_CONFIG).stem
@@ -87,7 +96,8 @@ def _train(args: argparse.Namespace) -> int:
     (args.run / "config.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
     ctx = RunContext(run_dir=args.run, device=_device(args.device), seed=seed, resume=args.resume)
     log.info("run folder: %s", args.run)
-    task.run(cfg, ctx)
+    with live.session(live_opts):
+        task.run(cfg, ctx)
     return 0
 
 
