@@ -76,9 +76,13 @@ class ViewerServer:
         self.server = viser.ViserServer(host=host, port=port, label="nsplat", verbose=False)
         self.host, self.port = host, self.server.get_port()
         self.model: ViewModel | None = None
-        self._build_gui()
-        if model is not None:
-            self.set_model(model)
+        try:
+            self._build_gui()
+            if model is not None:
+                self.set_model(model)
+        except BaseException:
+            self.server.stop()
+            raise
         self._thread = threading.Thread(target=self._loop, name="nsplat-viewer", daemon=True) if thread else None
         if self._thread is not None:
             self._thread.start()
@@ -89,8 +93,8 @@ class ViewerServer:
         with gui.add_folder("Render"):
             self._mode = gui.add_dropdown("Show", MODES, initial_value=s.mode,
                                           hint="RGB, splatted features (first 3 channels), alpha or depth")
-            self._res = gui.add_slider("Resolution", 64, 1024, 32, s.resolution, hint="longest image side (px)")
-            self._samples = gui.add_slider("Samples / px", 1, 64, 1, s.samples, hint="per-pixel sample size m")
+            self._res = gui.add_slider("Resolution", 16, max(1024, s.resolution), 16, s.resolution, hint="longest image side (px)")
+            self._samples = gui.add_slider("Samples / px", 1, max(64, s.samples), 1, s.samples, hint="per-pixel sample size m")
             eps = min(EPS_CHOICES, key=lambda e: abs(float(e) - s.eps))
             self._eps = gui.add_dropdown("ε", EPS_CHOICES, initial_value=eps, hint="sampler error bound")
             self._prog = gui.add_checkbox("Progressive", True, hint="cheap render while the camera moves")
