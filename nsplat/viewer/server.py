@@ -58,6 +58,9 @@ class ViewerServer:
     """
 
     settle_s: float = 0.15
+    #: the first browser camera looks from the first training camera's direction, this many times farther
+    #: from the points' centroid (so the frusta around the scene are in view)
+    initial_pullback: float = 1.4
 
     def __init__(self, model: ViewModel | None, host: str = "127.0.0.1", port: int = 8080,
                  settings: RenderSettings | None = None, thread: bool = True) -> None:
@@ -118,7 +121,7 @@ class ViewerServer:
     def _show_cameras(self, model: ViewModel) -> None:
         """Frusta with thumbnails for the training cameras (poses updated in place when only they
         changed); the first time also the up direction and the initial browser camera (the first
-        training camera, looking at the points' centroid)."""
+        training camera's direction, :attr:`initial_pullback` times farther, looking at the points' centroid)."""
         cams = model.cameras
         if cams is None:
             return
@@ -154,7 +157,8 @@ class ViewerServer:
             up = -V[:, 1, :3].mean(0)
             up = up / up.norm().clamp_min(1e-12)
             self.server.scene.set_up_direction(tuple(float(x) for x in up))
-            self.server.initial_camera.position = tuple(float(x) for x in poses[0][1])
+            eye = centre + self.initial_pullback * (torch.as_tensor(poses[0][1]) - centre)
+            self.server.initial_camera.position = tuple(float(x) for x in eye)
             self.server.initial_camera.look_at = tuple(float(x) for x in centre)
             self.server.initial_camera.up = tuple(float(x) for x in up)
             self.server.initial_camera.fov = vfov_of(cams.Ks[0], cams.height)
