@@ -224,3 +224,20 @@ def test_demo_run_is_viewable(tmp_path):
     c = m.cameras
     pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height, RenderSettings(samples=8, resolution=24))
     assert pic.shape == (24, 24, 3) and pic.std() > 0
+
+
+def test_refine_run_is_viewable_live_and_after(tmp_path):
+    cfg = tmp_path / "refine.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "task": "refine", "data": {"cache_dir": str(tmp_path / "cache"), "room": {
+            "width": 20, "height": 15, "frames": 3, "supersample": 1, "keyframe_stride": 1, "pixel_stride": 2}},
+        "render": {"samples": 8}, "optim": {"steps": 2, "batch": 2},
+        "log": {"every": 1, "image_every": 0, "checkpoint_every": 2}}))
+    port = free_port()
+    assert main(["--config", str(cfg), "--run", str(tmp_path / "run"), "viewer=true", f"viewer.port={port}"]) == 0
+    assert _port_is_free(port)
+    m = load_run(tmp_path / "run")
+    c = m.cameras
+    assert c.viewmats.shape == (3, 4, 4) and c.images.shape == (3, 15, 20, 3)
+    pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height, RenderSettings(samples=8, resolution=20))
+    assert pic.shape == (15, 20, 3) and pic.std() > 0

@@ -5,7 +5,6 @@
 """
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any, Callable
 
@@ -163,7 +162,3 @@ def cameras_of(images: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -
     V, H, W = images.shape[:3]
     return TrainingCameras(viewmats, Ks, int(W), int(H), images[..., :3] if images.shape[-1] >= 3 else None)
 
-
-def with_seed(model: ViewModel, seed: int) -> ViewModel:
-    """A copy of ``model`` rendering with op seed ``seed``."""
-    return dataclasses.replace(model, seed=seed)
