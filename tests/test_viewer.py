@@ -42,7 +42,9 @@ def _tiny(cache: Path) -> dict:
 
 
 def _port_is_free(port: int) -> bool:
+    """Nothing listens on ``port`` any more (SO_REUSEADDR: a closed connection's TIME_WAIT does not count)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError:
