@@ -7,6 +7,9 @@ Usage::
     python train.py --config configs/lego.yaml --run runs/lego --resume
     python train.py eval --run runs/lego --split test
     python train.py render --run runs/lego
+    python train.py view --run runs/lego                 # web viewer (nsplat/viewer), --help for options
+    python train.py export --run runs/lego --format ply  # or npz
+    python train.py --config configs/lego.yaml viewer=true   # live view while training
 
 User errors (bad config, bad data files, a run folder that cannot be used as asked) print one line on
 stderr and exit with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md).
@@ -31,6 +34,7 @@ from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
                            config_differences, folder_contents, lock_holder)
 from nsplat.tasks import get_task
+from nsplat.viewer import live
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
@@ -58,7 +62,7 @@ def _command(argv: list[str]) -> tuple[str, list[str]]:
     if argv and argv[0] in COMMANDS:
         return argv[0], argv[1:]
     if argv and not argv[0].startswith("-") and "=" not in argv[0]:
-        raise UsageError(f"unknown command {argv[0]!r}; valid commands: {', '.join(COMMANDS)} "
+        raise UsageError(f"unknown command {argv[0]!r}; valid commands: {', '.join(COMMANDS + ('view', 'export'))} "
                          f"(overrides are key=value)")
     return "train", argv
 
@@ -106,8 +110,12 @@ def _one_line(exc: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit code (0 success, 2 user error)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("view", "export"):  # own options: nsplat/viewer/commands.py
+        from nsplat.viewer.commands import main as viewer_main
+        return viewer_main(argv[0], argv[1:])
     try:
-        args = _parse(sys.argv[1:] if argv is None else argv)
+        args = _parse(argv)
         if args.command == "train":
             return _train(args)
         return _post(args)
@@ -135,7 +143,8 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
     if "task" not in raw:
         raise ConfigError("config has no 'task' key")
     task = get_task(raw["task"])
-    cfg = load_config(task.Config, raw, args.overrides)
+    overrides, args.live_opts = live.split_overrides(args.overrides)
+    cfg = load_config(task.Config, raw, overrides)
     if args.resume:
         saved = to_dict(load_config(task.Config, raw))
         changed = config_differences(saved, to_dict(cfg))
@@ -173,7 +182,8 @@ def _train(args: argparse.Namespace) -> int:
             atomic_write(args.run / "config.yaml", lambda fh: fh.write(text))
         ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
         log.info("run folder: %s", args.run)
-        task.run(cfg, ctx)
+        with live.session(args.live_opts):
+            task.run(cfg, ctx)
     except USER_ERRORS:
         failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
         if failed_start:  # a failed start leaves no half-made run behind

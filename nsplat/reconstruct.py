@@ -27,6 +27,8 @@ from nsplat.ops import SplatOutput, splat_dense, tangent_frame
 from nsplat.scene import SurfelScene
 from nsplat.shading import lambert
 from nsplat.truncated import splat_truncated
+from nsplat.viewer import live
+from nsplat.viewer.runs import cameras_of, surfel_view
 
 log = logging.getLogger(__name__)
 
@@ -263,6 +265,7 @@ def fit(scene: SurfelScene, images: torch.Tensor, viewmats: torch.Tensor, Ks: to
     writer = SummaryWriter(str(run_dir / "tb"), purge_step=step if step else None)
     bar = tqdm(total=cfg.epochs * steps_per_epoch, initial=epoch0 * steps_per_epoch, disable=not progress,
                desc="fit", dynamic_ncols=True)
+    cams = cameras_of(images, viewmats, Ks)
     try:
         for epoch in range(epoch0, cfg.epochs):
             perm = torch.randperm(V, generator=gen)
@@ -285,6 +288,8 @@ def fit(scene: SurfelScene, images: torch.Tensor, viewmats: torch.Tensor, Ks: to
                 step += 1
                 bar.update(1)
                 bar.set_postfix(epoch=epoch, loss=f"{loss_val:.4f}")
+                live.step(step, lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
+                                                    render_cfg=render_cfg, task="fit", seed=seed))
             moved = 0
             if cfg.reposition and (epoch + 1) % cfg.reposition_every == 0:
                 contrib = point_contributions(scene, viewmats, Ks, W, H, render_cfg, seed=seed * 1_000_000 + step,

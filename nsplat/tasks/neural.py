@@ -48,6 +48,8 @@ from nsplat.reconstruct import FitConfig, RenderConfig, fit
 from nsplat.reconstruct import render as render_surfels
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SceneConfig, SurfelScene
+from nsplat.viewer import live
+from nsplat.viewer.runs import cameras_of, neural_view
 
 log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -610,6 +612,7 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
     tr_sub = _subset(train, lg.val_views)
     val_sub = _subset(val, lg.val_views) if val is not None else None
     bar = tqdm(total=n.steps, initial=tr.step, desc="neural", dynamic_ncols=True, disable=not lg.progress)
+    cams = cameras_of(train.images, train.viewmats, train.Ks)
     try:
         while tr.step < n.steps:
             t0 = time.perf_counter()
@@ -619,6 +622,7 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
             tr.step += 1
             bar.update(1)
             bar.set_postfix(l1=f"{scalars['loss/l1']:.4f}", psnr=f"{scalars['psnr/train_batch']:.2f}")
+            live.step(tr.step, lambda: neural_view(tr.model, cams, eval_seed(cfg)))
             last = tr.step == n.steps
             if tr.step % lg.every == 0 or last:
                 for k, v in scalars.items():

@@ -44,6 +44,8 @@ from nsplat.poses import CameraCorrection, perturb_viewmats, pose_errors, pose_r
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.sh import SHLighting
+from nsplat.viewer import live
+from nsplat.viewer.runs import refine_view
 
 log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -601,6 +603,7 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
         loss.backward()
         _step_active(opts, active)
         done = step + 1
+        live.step(done, lambda: refine_view(model, ctx.seed))
         if cfg.filter.due(done):
             bad = run_filter(model, cfg, seed=ctx.seed * 1_000_003 + done)
             if bool(bad.any()):

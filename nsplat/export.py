@@ -1,0 +1,107 @@
+"""Exports of a trained run: a standard point-cloud PLY and an NPZ of the raw tensors.
+
+PLY layout (binary little endian, one ``vertex`` element, one row per surfel)::
+
+    x y z                    float   position (world units)
+    nx ny nz                 float   unit normal
+    red green blue           uchar   colour 0–255 (first three feature channels clamped to [0, 1];
+                                     for the neural task these start as the stage-1 colours and are
+                                     then learned, so they are only an approximate colour)
+    opacity                  float   opacity in [0, 1]
+    scale_0 scale_1          float   tangent standard deviations (world units, not log)
+    f_0 … f_{C-1}            float   all C features (RGB albedo, or the learned neural features)
+
+The first nine properties are what MeshLab, CloudCompare, Open3D and Blender read as a coloured point
+cloud with normals; the rest are extra properties those tools ignore or list as scalar fields.
+Note: unlike :meth:`nsplat.scene.SurfelScene.save_ply` (the training-internal layout: log-scales,
+opacity logits, raw features), every value here is op-ready.
+
+NPZ: ``means [N,3]``, ``normals [N,3]``, ``scales [N,2]``, ``opacities [N]``, ``features [N,C]``,
+``colours [N,3]`` (float, [0, 1]), ``background [C]`` and, when known, the training cameras
+``viewmats [V,4,4]`` (OpenCV world→camera), ``Ks [V,3,3]``, ``image_size [2]`` (width, height).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+
+from nsplat.viewer.model import ViewModel
+
+FORMATS = ("ply", "npz")
+
+
+def surfel_arrays(model: ViewModel) -> dict[str, np.ndarray]:
+    """The op-ready per-point tensors of ``model`` as float32 NumPy arrays (plus ``colours [N,3]``)."""
+    with torch.no_grad():
+        t = {"means": model.means, "normals": model.normals, "scales": model.scales,
+             "opacities": model.opacities, "features": model.features, "colours": model.rgb_colours()}
+        return {k: v.detach().float().cpu().contiguous().numpy() for k, v in t.items()}
+
+
+def write_ply(model: ViewModel, path: str | Path) -> Path:
+    """Write ``model``'s surfels in the documented PLY layout; returns the path."""
+    a = surfel_arrays(model)
+    N, C = a["features"].shape
+    rgb = np.clip(np.round(a["colours"] * 255.0), 0, 255).astype(np.uint8)
+    cols: list[tuple[str, str, np.ndarray]] = []
+    cols += [(n, "f4", a["means"][:, i]) for i, n in enumerate("xyz")]
+    cols += [(n, "f4", a["normals"][:, i]) for i, n in enumerate(("nx", "ny", "nz"))]
+    cols += [(n, "u1", rgb[:, i]) for i, n in enumerate(("red", "green", "blue"))]
+    cols += [("opacity", "f4", a["opacities"]), ("scale_0", "f4", a["scales"][:, 0]),
+             ("scale_1", "f4", a["scales"][:, 1])]
+    cols += [(f"f_{c}", "f4", a["features"][:, c]) for c in range(C)]
+    arr = np.empty(N, dtype=[(n, t) for n, t, _ in cols])
+    for n, _, v in cols:
+        arr[n] = v
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(path))
+    return path
+
+
+def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
+    """Read a PLY written by :func:`write_ply`: ``means, normals, scales, opacities, features`` (float32)
+    and ``colours [N,3]`` (uint8)."""
+    v = PlyData.read(str(path))["vertex"]
+    names = v.data.dtype.names
+
+    def stack(keys: list[str], dtype=np.float32) -> torch.Tensor:
+        return torch.from_numpy(np.stack([np.asarray(v[k], dtype) for k in keys], 1))
+
+    C = sum(1 for n in names if n.startswith("f_"))
+    return {"means": stack(list("xyz")), "normals": stack(["nx", "ny", "nz"]),
+            "colours": stack(["red", "green", "blue"], np.uint8), "opacities": stack(["opacity"])[:, 0],
+            "scales": stack(["scale_0", "scale_1"]), "features": stack([f"f_{c}" for c in range(C)])}
+
+
+def write_npz(model: ViewModel, path: str | Path) -> Path:
+    """Write ``model``'s raw tensors (and training cameras) as an uncompressed NPZ; returns the path."""
+    out = surfel_arrays(model)
+    out["background"] = model.background.detach().float().cpu().numpy()
+    if model.cameras is not None:
+        c = model.cameras
+        out.update(viewmats=c.viewmats.detach().float().cpu().numpy(), Ks=c.Ks.detach().float().cpu().numpy(),
+                   image_size=np.array([c.width, c.height], np.int64))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        np.savez(fh, **out)
+    return path
+
+
+def read_npz(path: str | Path) -> dict[str, torch.Tensor]:
+    """Read an NPZ written by :func:`write_npz` as tensors."""
+    with np.load(str(path)) as z:
+        return {k: torch.from_numpy(z[k]) for k in z.files}
+
+
+def export(model: ViewModel, fmt: str, path: str | Path) -> Path:
+    """Write ``model`` as ``fmt`` (``ply`` or ``npz``) to ``path``."""
+    if fmt == "ply":
+        return write_ply(model, path)
+    if fmt == "npz":
+        return write_npz(model, path)
+    raise ValueError(f"--format: expected one of {list(FORMATS)}, got {fmt!r}")

@@ -1,0 +1,207 @@
+"""What the viewer renders: a task-independent :class:`ViewModel` and the pure render function.
+
+:func:`render_view` maps one camera (OpenCV ``viewmat [4,4]`` world→camera, ``K [3,3]`` in pixels,
+``width``, ``height``) and :class:`RenderSettings` to :class:`ViewImages` (RGB, feature preview,
+alpha, depth). The web server, the live training view and the tests all call it, so "what the
+browser shows" and "a direct render of that camera" are the same computation.
+
+Every task reduces to surfels + optional per-camera shading + an optional image-space shader:
+
+* ``neural``: learned features splatted by the op, turned into RGB by the U-Net;
+* ``reconstruct`` / ``refine`` / ``demo``: RGB surfels (Lambert- or SH-shaded where the task shades).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Literal
+
+import numpy as np
+import torch
+
+from nsplat.ops import splat
+
+Mode = Literal["rgb", "features", "alpha", "depth"]
+MODES: tuple[str, ...] = ("rgb", "features", "alpha", "depth")
+
+
+@dataclasses.dataclass
+class TrainingCameras:
+    """The cameras a model was trained on (shown as frusta).
+
+    Attributes:
+        viewmats: ``[V,4,4]`` OpenCV world→camera. Ks: ``[V,3,3]`` intrinsics in pixels.
+        width, height: their image size. images: ``[V,H,W,3]`` in [0, 1], or ``None``.
+    """
+
+    viewmats: torch.Tensor
+    Ks: torch.Tensor
+    width: int
+    height: int
+    images: torch.Tensor | None = None
+
+
+@dataclasses.dataclass
+class ViewModel:
+    """A renderable trained scene.
+
+    Attributes:
+        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]`` (std-devs), opacities ``[N]``: surfels.
+        features: ``[N,C]`` per-point features (RGB albedo for the surfel tasks, learned for ``neural``).
+        background: ``[C]`` feature background.
+        colours: optional per-camera shading ``f(features [N,C], normals [N,3], viewmat [1,4,4]) → [N,C]``
+            (e.g. Lambert with camera-relative lights); ``None`` splats ``features`` as they are.
+        shader: optional image-space shader ``f(feature image [1,C',H,W]) → RGB [1,3,H,W]`` (the U-Net);
+            ``C' = C + 1`` when ``alpha_input`` (coverage appended). ``None``: RGB = first 3 channels.
+        alpha_input: append the splatted alpha to the shader's input.
+        near, far, lowpass, composite: op settings of the run.
+        cameras: the training cameras, or ``None``.
+        task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
+    """
+
+    means: torch.Tensor
+    normals: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    features: torch.Tensor
+    background: torch.Tensor
+    colours: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+    shader: Callable[[torch.Tensor], torch.Tensor] | None = None
+    alpha_input: bool = False
+    near: float = 0.01
+    far: float = 1e10
+    lowpass: float = 1.0
+    composite: str = "alpha"
+    cameras: TrainingCameras | None = None
+    task: str = ""
+    seed: int = 0
+
+    @property
+    def num_points(self) -> int:
+        """Number of surfels N."""
+        return int(self.means.shape[0])
+
+    @torch.no_grad()
+    def rgb_colours(self) -> torch.Tensor:
+        """``[N,3]`` unshaded point colours in [0, 1] (first three feature channels, clamped; a grey
+        copy of the first channel when C < 3) — what a point-cloud export writes as ``red green blue``."""
+        f = self.features.detach()
+        f = f[:, :3] if f.shape[1] >= 3 else f[:, :1].expand(-1, 3)
+        return f.clamp(0, 1)
+
+
+@dataclasses.dataclass
+class RenderSettings:
+    """Viewer render settings (the speed/accuracy knobs).
+
+    Attributes:
+        samples: per-pixel sample size m of the op. eps: its error bound ε.
+        mode: displayed image (``rgb``, ``features``, ``alpha``, ``depth``).
+        resolution: longest image side in pixels for a browser camera.
+    """
+
+    samples: int = 16
+    eps: float = 0.01
+    mode: Mode = "rgb"
+    resolution: int = 256
+
+    def __post_init__(self) -> None:
+        if self.samples < 1:
+            raise ValueError(f"samples: expected >= 1, got {self.samples}")
+        if not 0.0 < self.eps <= 1.0:
+            raise ValueError(f"eps: expected a value in (0, 1], got {self.eps}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode: expected one of {list(MODES)}, got {self.mode!r}")
+        if self.resolution < 8:
+            raise ValueError(f"resolution: expected >= 8 pixels, got {self.resolution}")
+
+
+@dataclasses.dataclass
+class ViewImages:
+    """One rendered camera: ``rgb [H,W,3]`` in [0, 1], ``features [H,W,C]`` (splatted, before any
+    shader), ``alpha [H,W,1]`` and ``depth [H,W,1]`` (alpha-normalised camera z, 0 where empty)."""
+
+    rgb: torch.Tensor
+    features: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+
+
+@torch.no_grad()
+def render_view(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                settings: RenderSettings) -> ViewImages:
+    """Render ``model`` from one camera through the op (and the shader, if any).
+
+    Args:
+        viewmat: ``[4,4]`` OpenCV world→camera. K: ``[3,3]`` intrinsics in pixels.
+        width, height: image size in pixels. settings: samples, ε (``mode`` is ignored here).
+    """
+    dev, dt = model.means.device, model.means.dtype
+    V = viewmat.to(dev, dt).reshape(1, 4, 4)
+    Kb = K.to(dev, dt).reshape(1, 3, 3)
+    normals = model.normals.detach()
+    feats = model.features.detach()
+    if model.colours is not None:
+        feats = model.colours(feats, normals, V)
+        feats = feats[0] if feats.dim() == 3 else feats
+    out = splat(model.means.detach(), normals, model.scales.detach(), model.opacities.detach(), feats, V, Kb,
+                int(width), int(height), samples=settings.samples, eps=settings.eps, composite=model.composite,
+                background=model.background.to(dev, feats.dtype), near=model.near, far=model.far,
+                lowpass=model.lowpass, seed=model.seed)
+    image, alpha = out.image[0], out.alpha[0]
+    if model.shader is not None:
+        cond = torch.cat([image, alpha], -1) if model.alpha_input else image
+        rgb = model.shader(cond.permute(2, 0, 1)[None].contiguous())[0].permute(1, 2, 0)
+    else:
+        rgb = image[..., :3] if image.shape[-1] >= 3 else image[..., :1].expand(-1, -1, 3)
+    return ViewImages(rgb=rgb.clamp(0, 1), features=image, alpha=alpha, depth=out.normalized_depth[0])
+
+
+_TURBO: np.ndarray | None = None
+
+
+def _turbo() -> np.ndarray:
+    global _TURBO
+    if _TURBO is None:
+        from matplotlib import colormaps
+
+        _TURBO = (colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255 + 0.5).astype(np.uint8)
+    return _TURBO
+
+
+def to_display(images: ViewImages, mode: Mode) -> np.ndarray:
+    """``[H,W,3]`` uint8 picture of ``images`` in ``mode``.
+
+    ``features``: first three channels, min-max normalised over the covered pixels; ``alpha``: grey;
+    ``depth``: turbo colour map between the 2nd and 98th percentile of the covered pixels (black: empty).
+    """
+    if mode == "rgb":
+        x = images.rgb
+    elif mode == "features":
+        f = images.features
+        f = f[..., :3] if f.shape[-1] >= 3 else f[..., :1].expand(-1, -1, 3)
+        covered = images.alpha[..., 0] > 0.5
+        ref = f[covered] if bool(covered.any()) else f.reshape(-1, 3)
+        lo, hi = ref.min(0).values, ref.max(0).values
+        x = ((f - lo) / (hi - lo).clamp_min(1e-8)).clamp(0, 1)
+    elif mode == "alpha":
+        x = images.alpha.clamp(0, 1).expand(-1, -1, 3)
+    elif mode == "depth":
+        d, covered = images.depth[..., 0], images.alpha[..., 0] > 0.5
+        if not bool(covered.any()):
+            return np.zeros((*d.shape, 3), np.uint8)
+        vals = d[covered].float()
+        lo, hi = torch.quantile(vals, 0.02), torch.quantile(vals, 0.98)
+        t = ((d.float() - lo) / (hi - lo).clamp_min(1e-8)).clamp(0, 1)
+        idx = (t * 255 + 0.5).long().cpu().numpy()
+        pic = _turbo()[idx]
+        pic[~covered.cpu().numpy()] = 0
+        return pic
+    else:
+        raise ValueError(f"mode: expected one of {list(MODES)}, got {mode!r}")
+    return (x.detach().float().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def render_display(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
+                   settings: RenderSettings) -> np.ndarray:
+    """:func:`render_view` then :func:`to_display` in ``settings.mode``: ``[H,W,3]`` uint8."""
+    return to_display(render_view(model, viewmat, K, width, height, settings), settings.mode)
