@@ -64,9 +64,10 @@ SETTINGS = {
 
 
 def run_one(name: str, shape: str, overrides: list[str], table: str, device: str | None, seed: int,
-            threads: int, collect_only: bool = False) -> dict | None:
+            threads: int, collect_only: bool = False, images: bool = True) -> dict | None:
     """Run (or reuse) one reconstruction; returns its ``metrics.json`` plus ``name``/``wall_s``
-    (``None`` with ``collect_only`` when the run has not finished)."""
+    (``None`` with ``collect_only`` when the run has not finished). ``images``: copy its first held-out
+    render and point plot to docs/images/reconstruct."""
     run_dir = REPO / "runs" / "bench" / table / name
     metrics = run_dir / "metrics.json"
     if not metrics.is_file() and collect_only:
@@ -79,15 +80,17 @@ def run_one(name: str, shape: str, overrides: list[str], table: str, device: str
         if device:
             cmd += ["--device", device]
         env = dict(os.environ, OMP_NUM_THREADS=str(threads))
-        run_dir.mkdir(parents=True, exist_ok=True)
+        run_dir.parent.mkdir(parents=True, exist_ok=True)  # the run folder itself belongs to train.py
         t0 = time.time()
-        with open(run_dir / "stdout.log", "ab") as log:
+        with open(run_dir.with_name(run_dir.name + ".log"), "ab") as log:
             subprocess.run(cmd + overrides, check=True, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
         wall = time.time() - t0
     else:
         wall = float("nan")
     out = json.loads(metrics.read_text())
     out.update(name=name, wall_s=out.get("fit_seconds", wall))
+    if not images:
+        return out
     renders = run_dir / "renders"
     if not (renders / "points.png").is_file():  # runs finished before the point plot existed
         subprocess.run([sys.executable, str(REPO / "train.py"), "render", "--run", str(run_dir)], check=True,

@@ -1,4 +1,4 @@
-"""nsplat — neural point-based rendering on unbiased differentiable surface splatting.
+"""nsplat — neural point-based rendering on differentiable surface splatting via Poisson sampling.
 
 Sub-packages: ``nsplat.ops`` (the splatting operator), ``nsplat.models`` (shader networks); modules
 for cameras, scenes, data, tasks and checkpoints live beside this file.

@@ -32,7 +32,7 @@ from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
-                           config_differences, folder_contents, lock_holder)
+                           config_differences, lock_holder)
 from nsplat.tasks import get_task
 from nsplat.viewer import live
 

@@ -48,7 +48,7 @@ class RenderConfig:
     renderer: Literal["splat", "dense", "truncated"] = "splat"
     samples: int = 40
     eps: float = 0.01
-    estimator: Literal["ht", "paper", "sampled"] = "ht"
+    estimator: Literal["ht", "ht-pips", "paper", "sampled"] = "ht"
     lowpass: float = 1.0
     near: float = 0.01
     far: float = 1e10

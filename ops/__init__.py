@@ -1,4 +1,7 @@
-"""nsplat.ops — unbiased differentiable surface splatting via Poisson sampling.
+"""nsplat.ops — differentiable surface splatting via Poisson sampling (Müller et al., "Unbiased ...").
+
+The default estimator ``"ht"`` is exactly unbiased with additive compositing; with alpha compositing no
+estimator is (docs/op.md §4).
 
 Public API:
     splat(...)          sampled EWA surface splatting (C++/OpenMP on CPU, CUDA on GPU)
@@ -6,6 +9,7 @@ Public API:
     Splatter            nn.Module holding the op's settings
     sample(...)         per-pixel SPS sample (indices, inclusion probabilities, Λ̂)
     composite_sample(...) compositor of a given per-pixel sample (differentiable, estimator backward)
+    diagnostics         Monte-Carlo bias/variance of the estimators against the dense oracle
     project(...)        differentiable EWA projection of surfels
 """
 from .functional import composite_sample, sample, splat

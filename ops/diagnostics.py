@@ -56,6 +56,10 @@ class EstimatorStudy:
         nd2 = float((self.dense ** 2).sum())
         return float(((self.mean - self.dense) * self.dense).sum()) / nd2, float((self.se * self.dense).norm()) / nd2
 
+    def cosine(self) -> float:
+        """Cosine between the mean sampled gradient and the dense one (direction bias; 1 = none)."""
+        return float(torch.nn.functional.cosine_similarity(self.mean, self.dense, dim=0))
+
     def relative_std(self) -> float:
         """Root-mean-square single-draw standard deviation relative to the dense gradient's RMS."""
         return float(self.std.norm()) / float(self.dense.norm())

@@ -1,5 +1,5 @@
 """Gradients: gradcheck of the oracle and the compositor, sampled vs dense, the estimators' definitions and
-the unbiasedness of the Horvitz–Thompson estimator (DESIGN.md §1 "Backward")."""
+the expectation of the Horvitz–Thompson estimators (docs/method.md "Backward")."""
 from __future__ import annotations
 
 import pytest
@@ -114,10 +114,12 @@ def _expected_additive_loss(sc_params, K, W, H, ratio, wi, wa, wd):
     return total
 
 
-def test_ht_gradient_is_unbiased_in_additive_mode():
-    """Mean of the "ht" gradient over R seeds equals the dense gradient within 4 standard errors plus exactly
-    the gap implied by SPS's inclusion probabilities differing from πps (computed exactly), for positions,
-    normals, scales, opacities, features, viewmats and background.
+def test_pips_gradient_mean_is_the_exact_sps_expectation_in_additive_mode():
+    """Mean of the "ht-pips" gradient over R seeds equals its exact expectation under SPS (from exact
+    inclusion probabilities) within 4 standard errors, and the dense gradient within 4 SE plus exactly the
+    gap implied by SPS's inclusion probabilities differing from πps, for positions, normals, scales,
+    opacities, features, viewmats and background. (The exactly unbiased "ht" is tested against the dense
+    gradient alone in tests/test_op_unbiased.py.)
 
     The loss weights are zero on the few pixels that have a certainty unit (πps = 1): there the op's π
     adapt to whether the unit was drawn, so a fixed-π expectation would not be an exact oracle."""
@@ -140,7 +142,7 @@ def test_ht_gradient_is_unbiased_in_additive_mode():
         ps = _params(sc, V, bg)
         # eps=1e-12: Λ̂ = Λ here, so the op's π are the πps probabilities (this test is about the estimator,
         # the ε-approximation of the sampler is tested in test_op_sampler.py)
-        out = splat(*ps[:6], K, W, H, samples=m, eps=1e-12, composite="additive", estimator="ht", seed=seed,
+        out = splat(*ps[:6], K, W, H, samples=m, eps=1e-12, composite="additive", estimator="ht-pips", seed=seed,
                     background=ps[6])
         runs.append([t.detach() for t in torch.autograd.grad(loss(out), ps)])
     pd = _params(sc, V, bg)

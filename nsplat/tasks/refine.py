@@ -102,7 +102,7 @@ class RenderConfig:
     renderer: Literal["splat", "dense"] = "splat"
     samples: int = 40
     eps: float = 0.01
-    estimator: Literal["ht", "paper", "sampled"] = "ht"
+    estimator: Literal["ht", "ht-pips", "paper", "sampled"] = "ht"
     composite: Literal["alpha", "additive"] = "alpha"
     background: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
     near: float = 0.3
