@@ -91,13 +91,14 @@ def build_reconstruct(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
 
 
 def build_refine(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat.tasks.refine import Frames, Refiner
+    from nsplat.data.views import PosedViews
+    from nsplat.tasks.refine import Refiner
 
     count = cfg.data.room.frames if cfg.data.source == "room" else max(1, cfg.data.nerf.limit)
     C = cfg.scene.channels
-    frames = Frames(images=torch.zeros(count, 1, 1, C), masks=torch.ones(count, 1, 1, dtype=torch.bool),
-                    viewmats=torch.eye(4).expand(count, 4, 4).clone(), Ks=torch.eye(3).expand(count, 3, 3).clone(),
-                    viewmats_gt=None)
+    frames = PosedViews(images=torch.zeros(count, 1, 1, C), viewmats=torch.eye(4).expand(count, 4, 4).clone(),
+                        Ks=torch.eye(3).expand(count, 3, 3).clone(), names=[str(i) for i in range(count)],
+                        masks=torch.ones(count, 1, 1, dtype=torch.bool))
     model = Refiner(cfg, _placeholder_scene(cfg.scene), frames)
     model.frames = None  # data, not model state
     notes = [f"cameras: {count} frames (source {cfg.data.source}); shading: {cfg.shading.model}"]

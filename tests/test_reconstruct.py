@@ -11,12 +11,13 @@ from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import ConfigError, load_config
 from nsplat.metrics import point_cloud_distances
 from nsplat.ops import splat_dense
-from nsplat.reconstruct import FitConfig, RenderConfig, fit, point_contributions, render_views, reposition
+from nsplat.fitting import FitConfig, fit, point_contributions, reposition
+from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
 from nsplat.tasks import get_task
 from nsplat.tasks.reconstruct import Config, fibonacci_sphere
-from nsplat.truncated import splat_truncated
+from nsplat.render_truncated import splat_truncated
 
 
 def _cameras(count: int, res: int, dist: float = 3.0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:

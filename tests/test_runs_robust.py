@@ -249,5 +249,5 @@ def test_nested_range_errors_carry_the_section_prefix(tmp_path, capsys):
     assert code == 2 and one_line_error(err) == "config error: optim.batch: expected a value >= 1, got 0"
     with pytest.raises(ConfigError, match=r"^x\.y\.samples: expected a value >= 1, got 0"):
         from nsplat.config import from_dict
-        from nsplat.reconstruct import RenderConfig
+        from nsplat.render import RenderConfig
         from_dict(RenderConfig, {"samples": 0}, prefix="x.y.")

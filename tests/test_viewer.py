@@ -234,7 +234,7 @@ def test_refine_run_is_viewable_live_and_after(tmp_path):
         "task": "refine", "data": {"cache_dir": str(tmp_path / "cache"), "room": {
             "width": 20, "height": 15, "frames": 3, "supersample": 1, "keyframe_stride": 1, "pixel_stride": 2}},
         "render": {"samples": 8}, "optim": {"steps": 2, "batch": 2},
-        "log": {"every": 1, "image_every": 0, "checkpoint_every": 2}}))
+        "log": {"every": 1, "images": 0, "checkpoint": 2}}))
     port = free_port()
     assert main(["--config", str(cfg), "--run", str(tmp_path / "run"), "viewer=true", f"viewer.port={port}"]) == 0
     assert _port_is_free(port)

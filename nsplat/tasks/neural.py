@@ -2,7 +2,7 @@
 
 Stage 1 (geometry): RGB surfels either read from a PLY or initialised on the visual hull of the
 training silhouettes (:mod:`nsplat.data.visual_hull`) and fitted to the training views with the op
-(:func:`nsplat.reconstruct.fit`, L1, features = RGB, no shading); written to ``geometry.ply``.
+(:func:`nsplat.fitting.fit`, L1, features = RGB, no shading); written to ``geometry.ply``.
 
 Stage 2 (neural): every point gets ``C`` learned features (the first three start from its stage-1
 colour); the op splats them (plus coverage; the background is the data background in the colour
@@ -38,14 +38,16 @@ from tqdm import tqdm
 from nsplat.cameras import look_at
 from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
 from nsplat.config import ConfigError, require_fields
-from nsplat.data.nerf_synthetic import Views, load_split
+from nsplat.data.nerf_synthetic import load_split
+from nsplat.data.views import PosedViews
 from nsplat.data.procedural import ProceduralSpec, ensure_scene
 from nsplat.data.visual_hull import hull_points
 from nsplat.losses import discriminator_loss, generator_loss
 from nsplat.metrics_image import lpips, lpips_status, psnr, ssim
 from nsplat.models import PatchDiscriminator, UNet
-from nsplat.reconstruct import FitConfig, RenderConfig, fit
-from nsplat.reconstruct import render as render_surfels
+from nsplat.fitting import FitConfig, fit
+from nsplat import render as gateway
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SceneConfig, SurfelScene
 from nsplat.viewer import live
@@ -54,7 +56,7 @@ from nsplat.viewer.runs import cameras_of, neural_view
 log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: Op seeds: stage-2 step ``k`` uses ``seed·STRIDE + STAGE2_OFFSET + k``, evaluation ``seed·STRIDE + EVAL_OFFSET``
-#: (disjoint from stage 1's ``seed·10⁶ + step·batch + j`` in :func:`nsplat.reconstruct.fit` for any run length).
+#: (disjoint from stage 1's ``seed·10⁶ + step·batch + j`` in :func:`nsplat.fitting.fit` for any run length).
 _SEED_STRIDE, _STAGE2_OFFSET, _EVAL_OFFSET = 1_000_000_000, 500_000_000, 900_000_000
 
 
@@ -110,7 +112,7 @@ class DataConfig:
 
 @dataclasses.dataclass
 class GeometryFitConfig(FitConfig):
-    """:class:`nsplat.reconstruct.FitConfig` with this stage's defaults (short CPU schedule, RGB
+    """:class:`nsplat.fitting.FitConfig` with this stage's defaults (short CPU schedule, RGB
     features rendered without shading: photographs carry their own)."""
 
     epochs: int = 8
@@ -331,7 +333,7 @@ def scene_root(cfg: Config) -> Path:
     return ensure_scene(spec, _path(p.cache_dir))
 
 
-def load_views(cfg: Config, split: str, device: torch.device) -> Views:
+def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
     """One split of the configured scene on ``device``."""
     limit = {"train": cfg.data.train_limit, "val": cfg.data.val_limit, "test": cfg.data.test_limit}[split]
     views = load_split(scene_root(cfg), split, resolution=cfg.data.resolution, background=cfg.data.background,
@@ -390,7 +392,7 @@ class NeuralRenderer(nn.Module):
                       seed: int) -> torch.Tensor:
         """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``."""
         s = self.scene
-        out = render_surfels(s.means, s.normals, s.scales, s.opacities, s.features, viewmats, Ks, width, height,
+        out = gateway.render(s.means, s.normals, s.scales, s.opacities, s.features, viewmats, Ks, width, height,
                              self.render_cfg, seed=seed, background=self.background)
         img = torch.cat([out.image, out.alpha], -1) if self.alpha_input else out.image
         return img.permute(0, 3, 1, 2).contiguous()
@@ -411,7 +413,7 @@ def build_discriminator(cfg: Config, cond_channels: int) -> PatchDiscriminator |
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
-def _initial_geometry(cfg: Config, train: Views, seed: int) -> SurfelScene:
+def _initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
@@ -425,7 +427,7 @@ def _initial_geometry(cfg: Config, train: Views, seed: int) -> SurfelScene:
                                    features=hp.colours.clamp(0.02, 0.98).to(device), scale_factor=g.scale_factor)
 
 
-def fit_geometry(cfg: Config, ctx: RunContext, train: Views) -> SurfelScene:
+def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews) -> SurfelScene:
     """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``."""
     scene = _initial_geometry(cfg, train, ctx.seed)
     if cfg.geometry.optim.epochs > 0:
@@ -525,7 +527,7 @@ def _nchw(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 3, 1, 2).contiguous()
 
 
-def train_step(cfg: Config, tr: Trainer, train: Views) -> dict[str, float]:
+def train_step(cfg: Config, tr: Trainer, train: PosedViews) -> dict[str, float]:
     """One stage-2 step on a random batch of training views; returns scalar losses."""
     n = cfg.neural
     idx = torch.randperm(len(train), generator=tr.generator)[:n.batch].to(train.images.device)
@@ -564,7 +566,7 @@ def eval_seed(cfg: Config) -> int:
 
 
 @torch.no_grad()
-def render_split(model: NeuralRenderer, views: Views, seed: int, batch: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
     """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode)."""
     was = model.training
     model.eval()
@@ -579,15 +581,6 @@ def render_split(model: NeuralRenderer, views: Views, seed: int, batch: int = 4)
     return torch.cat(rgbs).clamp(0, 1), torch.cat(conds)
 
 
-def _subset(views: Views, count: int) -> Views:
-    if count >= len(views):
-        return views
-    idx = torch.linspace(0, len(views) - 1, count).round().long()
-    return dataclasses.replace(views, images=views.images[idx], alphas=views.alphas[idx],
-                               viewmats=views.viewmats[idx], Ks=views.Ks[idx],
-                               names=[views.names[i] for i in idx.tolist()])
-
-
 def _preview(cond: torch.Tensor) -> torch.Tensor:
     """First three feature channels, min-max normalised per image, ``[B,3,H,W]``."""
     x = cond[:, :3]
@@ -596,7 +589,7 @@ def _preview(cond: torch.Tensor) -> torch.Tensor:
     return (x - lo) / (hi - lo).clamp_min(1e-8)
 
 
-def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train: Views, val: Views | None,
+def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train: PosedViews, val: PosedViews | None,
                  state: dict | None = None) -> Trainer:
     """Stage 2 from ``scene`` (fresh) or from a checkpoint ``state`` (resume); returns the trainer."""
     n, lg = cfg.neural, cfg.log
@@ -609,8 +602,8 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
         tr.load(state)
         log.info("resumed stage 2 at step %d", tr.step)
     writer = SummaryWriter(str(ctx.run_dir / "tb"), purge_step=tr.step or None)
-    tr_sub = _subset(train, lg.val_views)
-    val_sub = _subset(val, lg.val_views) if val is not None else None
+    tr_sub = train.spread(lg.val_views)
+    val_sub = val.spread(lg.val_views) if val is not None else None
     bar = tqdm(total=n.steps, initial=tr.step, desc="neural", dynamic_ncols=True, disable=not lg.progress)
     cams = cameras_of(train.images, train.viewmats, train.Ks)
     try:
@@ -643,8 +636,8 @@ def train_neural(cfg: Config, ctx: RunContext, scene: SurfelScene | None, train:
                 log.debug("step %d: %s", tr.step, rec)
             if lg.images and (tr.step % lg.images == 0 or last):
                 sub = val_sub if val_sub is not None else tr_sub
-                rgb, cond = render_split(tr.model, _subset(sub, 2), seed=eval_seed(cfg))
-                gt = _subset(sub, 2).images
+                rgb, cond = render_split(tr.model, sub.spread(2), seed=eval_seed(cfg))
+                gt = sub.spread(2).images
                 writer.add_images("images/features", _preview(cond), tr.step)
                 writer.add_images("images/render", _nchw(rgb), tr.step)
                 writer.add_images("images/gt", _nchw(gt), tr.step)
@@ -753,7 +746,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRen
     return metrics
 
 
-def orbit_cameras(train: Views, frames: int) -> torch.Tensor:
+def orbit_cameras(train: PosedViews, frames: int) -> torch.Tensor:
     """``[frames,4,4]`` cameras on a circle at the training cameras' mean distance and elevation,
     looking at the point nearest to all training optical axes, up = mean camera up."""
     V = train.viewmats.double().cpu()
@@ -785,7 +778,7 @@ def render(cfg: Config, ctx: RunContext) -> Path:
     viewmats = orbit_cameras(train, cfg.eval.orbit_frames).to(ctx.device)
     Ks = train.Ks[:1].expand(viewmats.shape[0], 3, 3).contiguous()
     orbit = dataclasses.replace(train, images=train.images[:1].expand(viewmats.shape[0], -1, -1, -1),
-                                alphas=train.alphas[:1].expand(viewmats.shape[0], -1, -1, -1), viewmats=viewmats,
+                                masks=None, viewmats=viewmats,
                                 Ks=Ks, names=[f"orbit_{i}" for i in range(viewmats.shape[0])])
     rgb, _ = render_split(model, orbit, seed=eval_seed(cfg))
     frames = _png(rgb)

@@ -4,7 +4,7 @@ Data: ground-truth images of a DSS point cloud rendered with the exact dense ren
 (:func:`nsplat.ops.splat_dense`) under the paper's Lambert lights, black background, from random
 views on a sphere around the object (cached under ``data_cache/``; views are nested: the first k of
 a larger set are the k-view set). Init: a Fibonacci sphere enclosing the object. Optimisation:
-:func:`nsplat.reconstruct.fit`. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
+:func:`nsplat.fitting.fit`. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
 definitions, see :mod:`nsplat.metrics`), ``reconstruction.ply``, ``renders/*.png`` (GT | result).
 """
 from __future__ import annotations
@@ -28,8 +28,9 @@ from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require_fields
 from nsplat.data.pointclouds import DSS_SHAPES, PointCloud, load_dss_shape
 from nsplat.metrics import point_cloud_distances
-from nsplat.reconstruct import FitConfig, RenderConfig, fit
-from nsplat.reconstruct import render as render_surfels
+from nsplat.fitting import FitConfig, fit
+from nsplat import render as gateway
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
@@ -153,7 +154,7 @@ def render_gt(pc: PointCloud, data: DataConfig, viewmats: torch.Tensor, Ks: torc
     with torch.no_grad():
         shaded = lambert(gt["albedo"], gt["normals"], viewmats)
         for b in range(viewmats.shape[0]):
-            out.append(render_surfels(gt["means"], gt["normals"], gt["scales"], gt["opacities"], shaded[b],
+            out.append(gateway.render(gt["means"], gt["normals"], gt["scales"], gt["opacities"], shaded[b],
                               viewmats[b:b + 1], Ks[b:b + 1], data.width, data.height,
                               dataclasses.replace(render_cfg, renderer="dense")).image)
     return torch.cat(out, 0)
@@ -273,7 +274,7 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
         sc = scene.cpu()
         shaded = lambert(sc.features, sc.normals, viewmats)
         for b in range(cfg.renders):
-            rec = render_surfels(sc.means, sc.normals, sc.scales, sc.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
+            rec = gateway.render(sc.means, sc.normals, sc.scales, sc.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
                          cfg.data.width, cfg.data.height, dense).image[0]
             pair = torch.cat([images[b], rec], 1).clamp(0, 1)
             p = folder / f"view_{b}.png"

@@ -1,9 +1,8 @@
-"""Fitting a :class:`~nsplat.scene.SurfelScene` to posed images (paper §4, shape reconstruction).
+"""The generic surfel fitter: a :class:`~nsplat.scene.SurfelScene` fitted to posed images (paper §4).
 
-* :func:`render` — the one place every render goes through; ``RenderConfig.renderer`` picks the
-  sampled op (``splat``, the target), the dense oracle (``dense``) or the truncated baseline
-  (``truncated``).
-* :func:`render_views` — renders a scene camera by camera, optionally Lambert-shading per camera.
+Used by the shape task (:mod:`nsplat.tasks.reconstruct`) and by stage 1 of the neural task. Renders go
+through the gateway :mod:`nsplat.render`.
+
 * :func:`point_contributions` — per-point visual contribution (weight × colour) over a set of views.
 * :func:`reposition` — moves non-contributing points next to random visible ones (tangent jitter).
 * :func:`fit` — Adam on an L1 image loss with a step-halving schedule, per-epoch repositioning,
@@ -21,90 +20,16 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from nsplat.config import require, require_fields
+from nsplat.config import require_fields
 from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
-from nsplat.ops import SplatOutput, splat_dense, tangent_frame
+from nsplat.ops import tangent_frame
+from nsplat.render import RenderConfig, render, render_views
 from nsplat.scene import SurfelScene
 from nsplat.shading import lambert
-from nsplat.truncated import splat_truncated
 from nsplat.viewer import live
 from nsplat.viewer.runs import cameras_of, surfel_view
 
 log = logging.getLogger(__name__)
-
-
-@dataclasses.dataclass
-class RenderConfig:
-    """Which renderer and with which settings.
-
-    Attributes:
-        renderer: ``splat`` (sampled op), ``dense`` (exact oracle) or ``truncated`` (3σ baseline).
-        samples, eps, estimator: sampled-op settings (samples per pixel m, error threshold ε, gradient
-            estimator ``ht`` / ``paper`` / ``sampled``).
-        lowpass: screen-space low-pass variance (px²). near, far: depth clipping range.
-        cutoff: truncation radius in σ for ``truncated``. tile: its tile size in pixels.
-    """
-
-    renderer: Literal["splat", "dense", "truncated"] = "splat"
-    samples: int = 40
-    eps: float = 0.01
-    estimator: Literal["ht", "paper", "sampled"] = "ht"
-    lowpass: float = 1.0
-    near: float = 0.01
-    far: float = 1e10
-    cutoff: float = 3.0
-    tile: int = 16
-
-    def __post_init__(self) -> None:
-        require_fields(self, samples=">=1", eps="prob", near=">0", lowpass=">=0", cutoff=">0", tile=">=1")
-        require(self.far > self.near, "far", f"a value > near ({self.near})", self.far)
-
-
-def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-           features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-           cfg: RenderConfig, *, seed: int = 0, background: torch.Tensor | None = None,
-           estimator: str | None = None) -> SplatOutput:
-    """Render ``[N]`` surfels into ``[B]`` cameras with the renderer ``cfg.renderer``.
-
-    Shapes as for :func:`nsplat.ops.splat`; returns ``image [B,H,W,C]``, ``alpha``/``depth [B,H,W,1]``.
-    ``seed`` feeds the sampled op's RNG (vary it per step); ``estimator`` overrides ``cfg.estimator``.
-    """
-    if cfg.renderer == "splat":
-        try:
-            from nsplat.ops import splat
-        except ImportError as exc:  # the op is optional until built
-            raise RuntimeError("render.renderer=splat: nsplat.ops.splat is not available "
-                               f"({exc}); use render.renderer=dense or truncated") from exc
-        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height,
-                     samples=cfg.samples, eps=cfg.eps, estimator=estimator or cfg.estimator,
-                     background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass, seed=seed)
-    if cfg.renderer == "dense":
-        return splat_dense(means, normals, scales, opacities, features, viewmats, Ks, width, height,
-                           background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass)
-    if cfg.renderer == "truncated":
-        return splat_truncated(means, normals, scales, opacities, features, viewmats, Ks, width, height,
-                               cutoff=cfg.cutoff, background=background, near=cfg.near, far=cfg.far,
-                               lowpass=cfg.lowpass, tile=cfg.tile)
-    raise ValueError(f"render.renderer: expected splat, dense or truncated, got {cfg.renderer!r}")
-
-
-def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                 cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none"] = "lambert",
-                 background: torch.Tensor | None = None) -> torch.Tensor:
-    """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]``.
-
-    With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
-    paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
-    a time (the op takes one feature tensor for all its cameras). Camera ``b`` uses op seed ``seed + b``.
-    """
-    if shading == "none":
-        return render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
-                      width, height, cfg, seed=seed, background=background).image
-    normals = scene.normals
-    shaded = lambert(scene.features, normals, viewmats)
-    out = [render(scene.means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
-                  width, height, cfg, seed=seed + b, background=background).image for b in range(viewmats.shape[0])]
-    return torch.cat(out, 0)
 
 
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
