@@ -5,31 +5,26 @@ through the gateway :mod:`nsplat.render`.
 
 * :func:`point_contributions` — per-point visual contribution (weight × colour) over a set of views.
 * :func:`reposition` — moves non-contributing points next to random visible ones (tangent jitter).
-* :func:`fit` — Adam on an L1 image loss with a step-halving schedule, per-epoch repositioning,
-  TensorBoard logging, atomic checkpoints and exact resume.
+* :func:`fit` — Adam on an L1 image loss with a step-halving schedule and per-epoch repositioning,
+  run by the engine (:mod:`nsplat.engine`: logging, atomic checkpoints, exact resume).
 """
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Literal
 
 import torch
-from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
-from nsplat.config import require_fields
-from nsplat.checkpoint import CheckpointError, NoCheckpoint, load_checkpoint, save_checkpoint
+from nsplat.config import require, require_fields
+from nsplat.data.views import PosedViews
+from nsplat.engine import Engine, Hook, LogConfig, Trainables, generator, latest_payload, op_seed
 from nsplat.ops import tangent_frame
 from nsplat.render import RenderConfig, render, render_views
-from nsplat.scene import SurfelScene
+from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.shading import lambert
-from nsplat.viewer import live
 from nsplat.viewer.runs import cameras_of, surfel_view
-
-log = logging.getLogger(__name__)
 
 
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -95,15 +90,20 @@ def reposition(scene: SurfelScene, contributions: torch.Tensor, min_weight: floa
     return int(dead.numel())
 
 
+#: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
+PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
+
+
 @dataclasses.dataclass
 class FitConfig:
     """Optimisation settings (defaults: the paper's).
 
     Attributes:
-        epochs: passes over all views. batch: views per step.
-        lr: learning rate of every learnable attribute unless overridden in ``lrs``.
-        lrs: per-attribute learning rates (``means``, ``normals``, ``scales``, ``opacities``, ``features``).
-        lr_decays: number of times the rate is multiplied by ``lr_gamma``, at regular intervals.
+        epochs: passes over all views (the schedule's length; the engine counts steps,
+            ``epochs × ceil(views / batch)``). batch: views per step.
+        learn: Adam learning rate per attribute (``means``, ``normals``, ``scales``, ``opacities``,
+            ``features``); which attributes are learnable is the scene's ``learn`` list.
+        lr_decays: number of times the rate is multiplied by ``lr_gamma``, at regular epoch intervals.
         betas: Adam decay rates.
         shading: ``lambert`` (features are albedo, shaded per camera) or ``none`` (features rendered as is).
         reposition: move non-contributing points after every ``reposition_every``-th epoch (paper: every
@@ -112,13 +112,11 @@ class FitConfig:
             colour, the paper's "visual contribution", default) or ``weight``. min_weight: a point contributes when
             its contribution summed over all views is at least this. jitter: tangent offset of a moved
             point, in units of its source point's scale.
-        checkpoint_every: epochs between checkpoints (the last epoch is always saved).
     """
 
     epochs: int = 300
     batch: int = 12
-    lr: float = 0.01
-    lrs: dict[str, float] = dataclasses.field(default_factory=dict)
+    learn: dict[str, float] = dataclasses.field(default_factory=lambda: dict(PAPER_LR))
     lr_decays: int = 5
     lr_gamma: float = 0.5
     betas: tuple[float, float] = (0.9, 0.999)
@@ -128,111 +126,80 @@ class FitConfig:
     contribution: Literal["radiance", "weight"] = "radiance"
     min_weight: float = 0.02
     jitter: float = 1.0
-    checkpoint_every: int = 1
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
         return [round(k * self.epochs / (self.lr_decays + 1)) for k in range(1, self.lr_decays + 1)]
 
     def __post_init__(self) -> None:
-        require_fields(self, epochs=">=0", batch=">=1", lr=">0", lr_decays=">=0", lr_gamma=">0",
-                       reposition_every=">=1", min_weight=">=0", jitter=">=0", checkpoint_every=">=1")
+        require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0")
+        require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
+                f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
 
-EpochCallback = Callable[[int, SurfelScene, SummaryWriter], dict[str, float]]
+def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0) -> Trainables:
+    """Module ``scene``, Adam ``fit`` over its learnable attributes, the epoch scheduler and the generator
+    of the repositioning draws."""
+    optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas))
+    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.milestones(), gamma=cfg.lr_gamma)
+    return Trainables(modules={"scene": scene}, optimizers={"fit": optimizer}, schedulers={"fit": scheduler},
+                      generator=torch.Generator().manual_seed(seed))
 
 
-def fit(scene: SurfelScene, images: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, cfg: FitConfig,
-        render_cfg: RenderConfig, run_dir: str | Path, *, seed: int = 0, resume: bool = False,
-        background: torch.Tensor | None = None, on_epoch: EpochCallback | None = None,
-        progress: bool = True) -> dict[str, float]:
-    """Optimise ``scene`` in place so its renders match ``images``.
+def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: RenderConfig, run_dir: str | Path, *,
+        log: LogConfig | None = None, seed: int = 0, resume: bool = False, background: torch.Tensor | None = None,
+        validate: Hook | None = None, desc: str = "fit") -> dict[str, float]:
+    """Optimise ``scene`` in place so its renders match ``views`` (L1, per-view backward) on the engine.
 
     Args:
         scene: the surfels; its learnable attributes are optimised.
-        images: ``[V,H,W,C]`` target images. viewmats ``[V,4,4]``, Ks ``[V,3,3]``: their cameras.
-        cfg: optimisation settings. render_cfg: renderer (op seed = ``seed·10⁶ + step·batch``).
+        views: target images ``[V,H,W,C]`` with their cameras.
+        cfg: optimisation settings. render_cfg: the gateway's settings. log: the engine's cadences (steps).
         run_dir: TensorBoard logs go to ``run_dir/tb``, checkpoints to ``run_dir/checkpoints``.
+        seed: run seed (op seeds: :func:`nsplat.engine.op_seed` streams ``fit``, ``reposition``, ``batches``).
         resume: continue from the last checkpoint in ``run_dir`` (bit-exact on the same machine).
-        on_epoch: optional ``f(epoch, scene, writer) -> scalars`` run after each epoch (e.g. metrics).
+        validate: the engine's validation hook ``f(step, writer) -> scalars`` (e.g. shape metrics).
 
     Returns:
-        the last epoch's scalars (``loss``, ``moved``, ``lr`` and ``on_epoch``'s).
+        the last step's scalars.
     """
-    V, H, W, C = images.shape
-    if viewmats.shape != (V, 4, 4) or Ks.shape != (V, 3, 3):
-        raise ValueError(f"viewmats/Ks: expected [{V},4,4]/[{V},3,3] for {V} images, "
-                         f"got {list(viewmats.shape)}/{list(Ks.shape)}")
-    for key in ("batch", "epochs", "reposition_every", "checkpoint_every"):
-        if getattr(cfg, key) < 1:
-            raise ValueError(f"optim.{key}: expected >= 1, got {getattr(cfg, key)}")
-    run_dir = Path(run_dir)
-    lrs = {"default": cfg.lr, **cfg.lrs}
-    optimizer = torch.optim.Adam(scene.param_groups(lrs), betas=tuple(cfg.betas))
+    V, W, H = len(views), views.width, views.height
+    images, viewmats, Ks = views.images, views.viewmats, views.Ks
+    t = build(scene, cfg, seed)
+    optimizer, scheduler = t.optimizers["fit"], t.schedulers["fit"]
     steps_per_epoch = math.ceil(V / cfg.batch)
-    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.milestones(), gamma=cfg.lr_gamma)
-    gen = torch.Generator().manual_seed(seed)
-    epoch0, step = 0, 0
-    scalars: dict[str, float] = {}
-    if resume:
-        try:
-            state = load_checkpoint(run_dir)
-        except NoCheckpoint:
-            log.info("no checkpoint in %s; starting from scratch", run_dir)
-        else:
-            scene.load_state_dict(state["scene"])
-            optimizer.load_state_dict(state["optimizer"])
-            scheduler.load_state_dict(state["scheduler"])
-            gen.set_state(state["generator"])
-            epoch0, step = state["epoch"], state["step"]
-            scalars = dict(state.get("scalars", {}))
-            log.info("resumed from epoch %d (step %d)", epoch0, step)
-    writer = SummaryWriter(str(run_dir / "tb"), purge_step=step if step else None)
-    bar = tqdm(total=cfg.epochs * steps_per_epoch, initial=epoch0 * steps_per_epoch, disable=not progress,
-               desc="fit", dynamic_ncols=True)
-    cams = cameras_of(images, viewmats, Ks)
-    try:
-        for epoch in range(epoch0, cfg.epochs):
-            perm = torch.randperm(V, generator=gen)
-            epoch_loss = 0.0
-            for s in range(steps_per_epoch):
-                idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
-                optimizer.zero_grad(set_to_none=True)
-                loss_val = 0.0
-                # Backward per view: memory stays at one view's graph; gradients are summed.
-                for j, v in enumerate(idx.tolist()):
-                    img = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
-                                       seed=seed * 1_000_000 + step * cfg.batch + j, shading=cfg.shading,
-                                       background=background)
-                    loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
-                    loss.backward()
-                    loss_val += loss.item()
-                optimizer.step()
-                writer.add_scalar("train/loss", loss_val, step)
-                epoch_loss += loss_val / steps_per_epoch
-                step += 1
-                bar.update(1)
-                bar.set_postfix(epoch=epoch, loss=f"{loss_val:.4f}")
-                live.step(step, lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
-                                                    render_cfg=render_cfg, task="fit", seed=seed))
+    engine = Engine(Path(run_dir), log or LogConfig(), cfg.epochs * steps_per_epoch, desc=desc)
+    start = engine.resume(t, latest_payload(Path(run_dir), resume))
+
+    def step(k: int) -> dict[str, float]:
+        epoch, s = divmod(k, steps_per_epoch)
+        perm = torch.randperm(V, generator=generator(seed, "batches", epoch))
+        idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
+        optimizer.zero_grad(set_to_none=True)
+        loss_val = 0.0
+        # Backward per view: memory stays at one view's graph; gradients are summed.
+        for j, v in enumerate(idx.tolist()):
+            img = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
+                               seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
+                               background=background)
+            loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
+            loss.backward()
+            loss_val += loss.item()
+        optimizer.step()
+        out = {"train/loss": loss_val}
+        if s + 1 == steps_per_epoch:
             moved = 0
             if cfg.reposition and (epoch + 1) % cfg.reposition_every == 0:
-                contrib = point_contributions(scene, viewmats, Ks, W, H, render_cfg, seed=seed * 1_000_000 + step,
-                                              chunk=cfg.batch, measure=cfg.contribution, shading=cfg.shading)
-                moved = reposition(scene, contrib, cfg.min_weight, cfg.jitter, gen, optimizer)
+                contrib = point_contributions(scene, viewmats, Ks, W, H, render_cfg,
+                                              seed=op_seed(seed, "reposition", epoch), chunk=cfg.batch,
+                                              measure=cfg.contribution, shading=cfg.shading)
+                moved = reposition(scene, contrib, cfg.min_weight, cfg.jitter, t.generator, optimizer)
             scheduler.step()
-            scalars = {"loss": epoch_loss, "moved": float(moved), "lr": optimizer.param_groups[0]["lr"]}
-            if on_epoch is not None:
-                scalars.update(on_epoch(epoch, scene, writer))
-            for k, v in scalars.items():
-                writer.add_scalar(f"epoch/{k}", v, step)
-            log.debug("epoch %d: %s", epoch, scalars)
-            last = epoch + 1 == cfg.epochs
-            if last or (epoch + 1) % cfg.checkpoint_every == 0:
-                save_checkpoint(run_dir, step, {"scene": scene.state_dict(), "optimizer": optimizer.state_dict(),
-                                                "scheduler": scheduler.state_dict(), "generator": gen.get_state(),
-                                                "epoch": epoch + 1, "scalars": scalars})
-    finally:
-        bar.close()
-        writer.close()
-    return scalars
+            out.update({"epoch/moved": float(moved), "epoch/lr": optimizer.param_groups[0]["lr"]})
+        return out
+
+    cams = cameras_of(images, viewmats, Ks)
+    return engine.train(t, step, start=start, validate=validate,
+                        view=lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
+                                                 render_cfg=render_cfg, task=desc, seed=op_seed(seed, "eval")))

@@ -134,18 +134,14 @@ def _demo(cfg: Any, device: torch.device) -> ViewModel:
 
 
 def _reconstruct(cfg: Any, ctx: RunContext) -> ViewModel:
-    from nsplat.checkpoint import load_checkpoint
+    from nsplat.data.dss import cache_file, view_cameras
     from nsplat.data.pointclouds import load_dss_shape
     from nsplat.tasks import reconstruct as rec
 
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    state = load_checkpoint(ctx.run_dir, map_location="cpu")["scene"]
-    count = state["_means"].shape[0]
-    scene = SurfelScene(cfg.scene, count)
-    scene.load_state_dict(state)
-    scene = scene.to(ctx.device)
-    V, K = rec.view_cameras(cfg.data.views, pc, cfg.data)
-    cache = rec._cache_file(cfg.data, cfg.render, "train")
+    scene = rec.restore(cfg, ctx)
+    V, K = view_cameras(cfg.data.views, pc, cfg.data)
+    cache = cache_file(cfg.data, cfg.render, "train")
     images = None
     if cache.is_file():  # GT images only if already rendered (never re-render them for viewing)
         have = torch.load(cache, weights_only=True)
@@ -153,7 +149,7 @@ def _reconstruct(cfg: Any, ctx: RunContext) -> ViewModel:
     cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.data.width, cfg.data.height,
                            None if images is None else images.to(ctx.device))
     return surfel_view(scene, cams, shading=cfg.optim.shading, render_cfg=cfg.render, task="reconstruct",
-                       seed=ctx.seed)
+                       seed=op_seed(ctx.seed, "eval"))
 
 
 def cameras_of(images: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> TrainingCameras:
