@@ -54,7 +54,7 @@ PAPER_TABLE1 = {
 #: Budgets. ``cpu``: what we run on the 2-core development machine; ``paper``: §4 of the paper.
 def learning_rate(lr: float) -> list[str]:
     """Overrides giving every learnable attribute of the reconstruct configs the rate ``lr``."""
-    return [f"optim.learn.{a}={lr}" for a in ("means", "normals", "scales", "features")]
+    return [f"optim.learn.{a}={lr}" for a in ("means", "normals", "scales", "opacities", "features")]
 
 
 #: Log cadences are in steps: ``validate`` = shape metrics every 5 or 10 epochs of ``views / batch`` steps.
