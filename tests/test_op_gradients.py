@@ -1,5 +1,5 @@
 """Gradients: gradcheck of the oracle and the compositor, sampled vs dense, the estimators' definitions and
-the unbiasedness of the Horvitz–Thompson estimator (DESIGN.md §1 "Backward")."""
+the unbiasedness of the Horvitz–Thompson estimator (docs/method.md "Backward")."""
 from __future__ import annotations
 
 import pytest
