@@ -16,7 +16,8 @@ import torch
 from nsplat.config import require, require_fields
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.ops.validation import memory_limit
-from nsplat.render import RenderConfig, render
+from nsplat import render as gateway
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 
 log = logging.getLogger("nsplat.demo")
@@ -89,13 +90,13 @@ def run(cfg: Config, ctx: RunContext) -> None:
     rcfg = render_config(cfg)
     args = (sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"], V, K, cfg.resolution,
             cfg.resolution)
-    out = render(*args, rcfg, seed=ctx.seed)
+    out = gateway.render(*args, rcfg, seed=ctx.seed)
     row = torch.cat(list(out.image.clamp(0, 1)), dim=1).cpu().numpy()
     path = ctx.run_dir / "demo.png"
     iio.imwrite(path, (row * 255).round().astype(np.uint8))
     log.info("wrote %s (%d views, %d points, samples=%d, mean kernel evaluations/pixel %.1f)", path, cfg.views,
              cfg.points, cfg.samples, float(out.work.float().mean()))
     if cfg.compare_dense:
-        ref = render(*args, dataclasses.replace(rcfg, renderer="dense"))
+        ref = gateway.render(*args, dataclasses.replace(rcfg, renderer="dense"))
         err = float((out.image - ref.image).abs().mean())
         log.info("mean abs difference to the dense renderer: %.5f", err)
