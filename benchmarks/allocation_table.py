@@ -85,35 +85,39 @@ def build_demo(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
 
 
 def build_reconstruct(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
+    from nsplat.tasks import reconstruct
+
     notes = ["Lambert shading with the paper's fixed camera-relative lights (nothing allocated)",
              f"N = init.count or the GT point count ({cfg.data.shape}); render: {cfg.render.renderer}"]
-    return {"scene": _placeholder_scene(cfg.scene)}, notes
+    return reconstruct.build(cfg, "cpu", N_PLACEHOLDER).modules, notes
 
 
 def build_refine(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat.tasks.refine import Frames, Refiner
+    from nsplat.data.views import PosedViews
+    from nsplat.tasks import refine
 
     count = cfg.data.room.frames if cfg.data.source == "room" else max(1, cfg.data.nerf.limit)
     C = cfg.scene.channels
-    frames = Frames(images=torch.zeros(count, 1, 1, C), masks=torch.ones(count, 1, 1, dtype=torch.bool),
-                    viewmats=torch.eye(4).expand(count, 4, 4).clone(), Ks=torch.eye(3).expand(count, 3, 3).clone(),
-                    viewmats_gt=None)
-    model = Refiner(cfg, _placeholder_scene(cfg.scene), frames)
-    model.frames = None  # data, not model state
+    frames = PosedViews(images=torch.zeros(count, 1, 1, C), viewmats=torch.eye(4).expand(count, 4, 4).clone(),
+                        Ks=torch.eye(3).expand(count, 3, 3).clone(), names=[str(i) for i in range(count)],
+                        masks=torch.ones(count, 1, 1, dtype=torch.bool))
+    modules = refine.build(cfg, _placeholder_scene(cfg.scene), frames).modules
+    modules["model"].frames = None  # data, not model state
     notes = [f"cameras: {count} frames (source {cfg.data.source}); shading: {cfg.shading.model}"]
-    return {"model": model}, notes
+    return modules, notes
 
 
 def build_neural(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat.tasks.neural import NeuralRenderer, build_discriminator, geometry_scene_config, neural_scene_config
+    from nsplat import fitting
+    from nsplat.tasks import neural
 
-    stage1 = _placeholder_scene(geometry_scene_config(cfg))
-    model = NeuralRenderer(_placeholder_scene(neural_scene_config(cfg)), cfg)
-    disc = build_discriminator(cfg, model.cond_channels)
+    stage1 = fitting.build(_placeholder_scene(neural.geometry_scene_config(cfg)), cfg.geometry.optim).modules
+    stage2 = neural.build(cfg, _placeholder_scene(neural.neural_scene_config(cfg))).modules
+    disc = stage2.get("disc")
     notes = [f"stage 1 (geometry): RGB surfels; stage 2: {cfg.neural.features} learned features per point, "
              f"U-Net shader, PatchGAN {'on' if disc is not None else 'off (not built)'}",
              f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"]
-    return {"stage1_scene": stage1, "stage2": model, "discriminator": disc}, notes
+    return {"stage1_scene": stage1["scene"], "stage2": stage2["model"], "discriminator": disc}, notes
 
 
 BUILDERS: dict[str, Callable[[Any], tuple[dict[str, nn.Module | None], list[str]]]] = {

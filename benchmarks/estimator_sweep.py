@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from table1 import RESULTS, SETTINGS, common_args, fmt, prepare_gt, run_one  # noqa: E402
+from table1 import RESULTS, SETTINGS, common_args, fmt, learning_rate, prepare_gt, run_one  # noqa: E402
 
 ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
 
@@ -33,7 +33,7 @@ def main() -> None:
     known, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0]] + rest
     args = common_args(__doc__.splitlines()[0])
-    jobs = [(f"{shape}-{est}-lr{lr:g}", shape, ["render.renderer=splat", f"render.estimator={est}", f"optim.lr={lr}"])
+    jobs = [(f"{shape}-{est}-lr{lr:g}", shape, ["render.renderer=splat", f"render.estimator={est}", *learning_rate(lr)])
             for shape in args.shapes for est in known.estimators for lr in known.lrs]
     if not args.collect_only:
         prepare_gt(jobs, args)

@@ -33,19 +33,20 @@ import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from nsplat.data.paths import data_root  # noqa: E402
 from nsplat.data.nerf_synthetic import load_split  # noqa: E402
 from nsplat.scene import SceneConfig, SurfelScene  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 IMAGES = ROOT / "docs" / "images" / "refine"
-LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic" / "lego_400"
+LEGO = data_root() / "nerf_synthetic" / "lego_400"
 
 
 def carve(grid: int, resolution: int, bound: float = 1.3) -> dict[str, torch.Tensor]:
     """Surface voxels of the visual hull of all training views (see the module docstring)."""
     v = load_split(LEGO, "train", resolution=resolution)
     H, W = v.height, v.width
-    alpha = v.alphas[..., 0]
+    alpha = v.masks
     alpha = F.max_pool2d(alpha[:, None], 3, 1, 1)[:, 0]  # dilate 1 px: conservative hull
     s = (torch.arange(grid, dtype=torch.float64) + 0.5) / grid * 2 * bound - bound
     X, Y, Z = torch.meshgrid(s, s, s, indexing="ij")
@@ -113,16 +114,16 @@ def main() -> None:
     print(f"visual hull: {n} surface points ({args.grid}^3 grid), {t_carve:.1f} s")
     common = ["data.source=nerf", f"data.nerf.root={LEGO}", f"data.nerf.resolution={args.resolution}",
               f"data.nerf.limit={args.frames}", "render.background=[1.0,1.0,1.0]", "shading.model=albedo",
-              f"render.estimator={args.estimator}", "filter.enabled=false", "log.image_every=0",
+              f"render.estimator={args.estimator}", "filter.enabled=false", "log.images=0",
               "coverage_mask=0.0"]  # the white background is signal here (silhouettes)
     fit = run_task(base / "fit", common + [
         f"data.nerf.cloud={base / 'hull.ply'}", "data.nerf.rot_deg=0.0", "data.nerf.trans_frac=0.0",
         "poses.learn=false", f"optim.steps={args.fit_steps}", "optim.warmup=0",
-        f"optim.decay_every={max(1, args.fit_steps // 2)}", f"log.checkpoint_every={args.fit_steps}"])
+        f"optim.decay_every={max(1, args.fit_steps // 2)}", f"log.checkpoint={args.fit_steps}"])
     pose = run_task(base / "pose", common + [
         f"data.nerf.cloud={base / 'fit' / 'scene.ply'}", "data.nerf.rot_deg=2.0", "data.nerf.trans_frac=0.02",
         "poses.learn=true", "scene.learn=[]", f"optim.steps={args.pose_steps}", "optim.warmup=0",
-        f"optim.decay_every={max(1, args.pose_steps // 3)}", f"log.checkpoint_every={args.pose_steps}"])
+        f"optim.decay_every={max(1, args.pose_steps // 3)}", f"log.checkpoint={args.pose_steps}"])
     total = time.perf_counter() - t0
     out = {"args": vars(args), "hull_points": n, "carve_s": t_carve, "fit": fit, "pose": pose, "total_s": total}
     RESULTS.mkdir(parents=True, exist_ok=True)

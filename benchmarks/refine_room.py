@@ -40,7 +40,7 @@ def run_one(estimator: str, args: argparse.Namespace) -> dict:
                  f"data.room.width={args.width}", f"data.room.height={args.height}",
                  f"data.room.frames={args.frames}", f"optim.decay_every={args.steps // 3}",
                  f"filter.start={args.steps // 5}", f"filter.every={args.steps // 3}",
-                 f"log.checkpoint_every={args.steps}", *args.set]
+                 f"log.checkpoint={args.steps}", *args.set]
     cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(ROOT / "configs" / "refine_room.yaml"),
            "--run", str(run_dir), "--device", "cpu", *overrides]
     subprocess.run(cmd, check=True, cwd=ROOT)

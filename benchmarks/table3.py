@@ -24,8 +24,9 @@ def overrides(views: int, setting: str) -> list[str]:
     ov = ["render.renderer=splat", "render.estimator=ht", f"data.views={views}"]
     if setting == "cpu":
         epochs = max(1, round(CPU_VIEW_RENDERS / views))
+        steps_per_epoch = -(-views // 6)  # the cpu setting's batch of 6
         ov += [f"optim.epochs={epochs}", f"optim.reposition_every={max(1, epochs // 4)}",
-               f"eval_every={max(1, epochs // 4)}"]
+               f"log.validate={max(1, epochs // 4) * steps_per_epoch}"]
     return ov
 
 

@@ -36,7 +36,7 @@ data:
 geometry: {{grid: 32, optim: {{epochs: 2, batch: 4, reposition: false}}}}
 render: {{samples: 16}}
 neural: {{steps: {steps}, batch: 2, features: 4, unet: {{depth: 2, width: 8}}, gan: {{width: 8, layers: 2}}}}
-log: {{every: 5, images: 0, checkpoint: 1000, validate: 0, val_views: 2, progress: false}}
+log: {{every: 5, images: 0, checkpoint: 1000, validate: 0, progress: false}}
 eval: {{images: false}}
 """
 

@@ -29,6 +29,7 @@ import yaml
 
 from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
+from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
@@ -36,8 +37,7 @@ from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder
 from nsplat.tasks import get_task
 from nsplat.viewer import live
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_CONFIG = REPO_ROOT / "configs" / "default.yaml"
+DEFAULT_CONFIG = config_dir() / "default.yaml"
 log = logging.getLogger("nsplat")
 
 
@@ -69,9 +69,10 @@ def _command(argv: list[str]) -> tuple[str, list[str]]:
 
 def _parse(argv: list[str]) -> argparse.Namespace:
     command, argv = _command(argv)
-    p = _Parser(prog="train.py", description=__doc__,
+    p = _Parser(prog=_prog(), description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="YAML config: a path, or the name of a shipped config (default: default.yaml)")
     p.add_argument("--run", type=Path, default=None, help="run folder (default: runs/<config>-<time>)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --run")
     p.add_argument("--overwrite", action="store_true",
@@ -88,6 +89,11 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     if args.resume and args.overwrite:
         raise UsageError("--resume and --overwrite exclude each other")
     return args
+
+
+def _prog() -> str:
+    """The name the program was started under (``train.py`` or the ``nsplat`` console script)."""
+    return Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "nsplat"
 
 
 def _device(name: str | None) -> torch.device:
@@ -120,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             return _train(args)
         return _post(args)
     except UsageError as exc:
-        print(f"usage error: {_one_line(exc)} (see train.py --help)", file=sys.stderr)
+        print(f"usage error: {_one_line(exc)} (see {_prog()} --help)", file=sys.stderr)
         return 2
     except ConfigError as exc:
         print(f"config error: {_one_line(exc)}", file=sys.stderr)
@@ -128,6 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     except USER_ERRORS as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+
+
+def _config_path(path: Path | None) -> Path:
+    """``--config``: a file path, else a shipped config of that name (``lego.yaml``); default ``default.yaml``."""
+    if path is None:
+        return DEFAULT_CONFIG
+    shipped = config_dir() / path.name
+    return shipped if not path.exists() and path.parent == Path(".") and shipped.is_file() else path
 
 
 def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]:
@@ -139,7 +153,7 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
         check_run_folder(args.run, resume=True, overwrite=False)
         raw = read_yaml(args.run / "config.yaml")
     else:
-        raw = read_yaml(args.config or DEFAULT_CONFIG)
+        raw = read_yaml(_config_path(args.config))
     if "task" not in raw:
         raise ConfigError("config has no 'task' key")
     task = get_task(raw["task"])
@@ -160,7 +174,7 @@ def _train(args: argparse.Namespace) -> int:
     device = _device(args.device)
     if args.run is None:
         stem = (args.config or DEFAULT_CONFIG).stem
-        args.run = REPO_ROOT / "runs" / f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+        args.run = repo_root() / "runs" / f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     holder = lock_holder(args.run)
     if holder is not None:
         raise RunFolderError(f"run folder {args.run} is in use by process {holder}; wait for it to finish "

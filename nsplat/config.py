@@ -221,9 +221,36 @@ def _one_line(exc: Exception) -> str:
     return " ".join(str(exc).split())
 
 
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping, with a clear error for a missing or malformed file."""
+def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` deep-merged onto ``base`` (mappings merge key by key; any other value replaces)."""
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = merge(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), Mapping) \
+            else value
+    return out
+
+
+def read_yaml(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """Read a YAML mapping, with a clear error for a missing or malformed file.
+
+    A top-level ``base: <file>`` (relative to this file's folder) includes another config: this file's
+    keys are deep-merged onto it (:func:`merge`), so a variant names only what it changes.
+    """
     p = Path(path)
+    data = _read_mapping(p)
+    if "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{p}: base: expected a config file name, got {base!r}")
+    base_path = p.parent / base
+    if base_path.resolve() in _seen or base_path.resolve() == p.resolve():
+        raise ConfigError(f"{p}: base: {base} includes itself")
+    return merge(read_yaml(base_path, _seen + (p.resolve(),)), data)
+
+
+def _read_mapping(p: Path) -> dict[str, Any]:
+    """One YAML file as a mapping (no includes)."""
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
     try:

@@ -1,4 +1,4 @@
-"""A learnable set of oriented surfels (DESIGN.md §1), allocating only what its config asks for.
+"""A learnable set of oriented surfels (docs/method.md), allocating only what its config asks for.
 
 A :class:`SurfelScene` stores, per point ``k``: position ``p_k`` (3), normal ``n_k`` (3, stored raw and
 normalised by the op), log tangent std-devs ``log s_k`` (2), opacity logit (1) and features ``f_k`` (C).
@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Literal, Mapping
+from typing import Iterable, Literal, Mapping
 
 import numpy as np
 import torch
@@ -29,6 +29,7 @@ from torch import nn
 from nsplat.config import ConfigError
 from nsplat.data.pointclouds import check_ply_header
 from nsplat.errors import DataError
+from nsplat.points import reset_rows, select_rows
 
 log = logging.getLogger(__name__)
 
@@ -251,17 +252,17 @@ class SurfelScene(nn.Module):
         """
         index = torch.as_tensor(index, dtype=torch.long, device=self._means.device)
         self.set_values(values, index)
-        if optimizer is None:
-            return
-        for name in self.cfg.learn:
-            p = self.tensor(name)
-            state = optimizer.state.get(p)
-            if not state:
-                continue
-            for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
-                buf = state.get(key)
-                if isinstance(buf, torch.Tensor) and buf.shape == p.shape:
-                    buf[index] = 0
+        if optimizer is not None:
+            reset_rows([optimizer], [self.tensor(name) for name in self.cfg.learn], index)
+
+    @torch.no_grad()
+    def select(self, keep: torch.Tensor, optimizers: Iterable[torch.optim.Optimizer] = ()) -> "SurfelScene":
+        """A new scene of the rows ``keep [N]`` (bool); ``optimizers`` are moved to its parameters with
+        their state sliced (:func:`nsplat.points.select_rows`)."""
+        new = SurfelScene(self.cfg, int(keep.sum()), dtype=self._means.dtype, device=self._means.device)
+        new.load_state_dict({k: v[keep] for k, v in self.state_dict().items()})
+        select_rows(optimizers, {self.tensor(n): new.tensor(n) for n in self.cfg.learn}, keep)
+        return new
 
     # ------------------------------------------------------------------ optimiser
     def param_groups(self, lrs: Mapping[str, float]) -> list[dict]:

@@ -12,7 +12,7 @@ z forward, so the headlight direction is ``(0, 0, -1)``, "above" is ``(0, -1, 0)
 
 Because the lights move with the camera, the shaded colour depends on the camera: :func:`lambert`
 returns one feature tensor per camera ``[B, N, C]`` and callers render camera by camera (see
-:func:`nsplat.reconstruct.render_views`).
+:func:`nsplat.render.render_views`).
 """
 from __future__ import annotations
 

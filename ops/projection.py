@@ -1,6 +1,6 @@
 """Differentiable EWA projection of oriented surfels into each camera (pure PyTorch).
 
-Conventions (DESIGN.md §1): OpenCV camera (x right, y down, z forward), ``viewmats`` world→camera,
+Conventions (docs/method.md): OpenCV camera (x right, y down, z forward), ``viewmats`` world→camera,
 pixel centres at ``(i + 0.5, j + 0.5)``. A surfel ``k`` has tangent axes ``t0, t1`` from a
 view-independent orthonormal frame of its normal (Duff et al. 2017), scaled by ``scales[k]``. The
 local affine map of the tangent plane to the screen is the exact perspective Jacobian ``J`` (2×2,

@@ -40,7 +40,7 @@ def _hand_made_scene(root: Path) -> None:
 def test_loader_known_point_projects_to_known_pixel(tmp_path):
     _hand_made_scene(tmp_path)
     v = load_split(tmp_path, "train")
-    assert v.images.shape == (1, 10, 20, 3) and v.alphas.shape == (1, 10, 20, 1)
+    assert v.images.shape == (1, 10, 20, 3) and v.masks.shape == (1, 10, 20)
     X = torch.tensor([0.5, 0.25, 0.0])  # right of and above the optical axis (world y is up)
     uv = _project(v.viewmats[0], v.Ks[0], X)
     assert torch.allclose(uv, torch.tensor([12.5, 3.75], dtype=torch.float64), atol=1e-5)
@@ -50,7 +50,7 @@ def test_loader_known_point_projects_to_known_pixel(tmp_path):
     assert torch.allclose(v.images[0, 0, 0], torch.ones(3))
     a = 128 / 255
     assert torch.allclose(v.images[0, 8, 2], torch.tensor([1 - a, 1 - a, 1.0]), atol=1e-6)
-    assert v.alphas[0, 8, 2, 0].item() == pytest.approx(a)
+    assert v.masks[0, 8, 2].item() == pytest.approx(a)
     # Viewmats are exact world→camera matrices (last row exact, as the op checks).
     assert torch.equal(v.viewmats[0, 3], torch.tensor([0.0, 0.0, 0.0, 1.0]))
 
@@ -135,7 +135,7 @@ def test_procedural_scene_loads_and_is_cached(tmp_path):
     v = load_split(root, "train")
     assert v.images.shape == (6, 24, 24, 3)
     assert torch.allclose(v.Ks[0], intrinsics_from_fov(spec.camera_angle_x, 24, 24)[0])
-    covered = v.alphas.mean().item()
+    covered = v.masks.mean().item()
     assert 0.03 < covered < 0.8  # objects fill part of the frame, background is transparent
     # Every object is seen: the silhouettes' visual hull is not empty and lies within the scene box.
     occ = carve(v, (-1.5, -1.5, -0.2, 1.5, 1.5, 1.6), 24)

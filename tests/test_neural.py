@@ -20,8 +20,7 @@ from nsplat.config import ConfigError, load_config
 from nsplat.metrics_image import lpips_status
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
-from nsplat.tasks.neural import (Config, fit_geometry, load_views, make_trainer, neural_scene_from,
-                                 render_split, train_step)
+from nsplat.tasks.neural import Config, build, fit_geometry, load_views, neural_scene_from, render_split, train_step
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -36,8 +35,8 @@ def _tiny(cache: Path, **neural) -> dict:
         "render": {"samples": 16},
         "neural": {"steps": 4, "batch": 2, "features": 4, "unet": {"depth": 2, "width": 8},
                    "gan": {"width": 8, "layers": 2}, **neural},
-        "log": {"every": 1, "images": 2, "checkpoint": 2, "validate": 2, "val_views": 2, "progress": False},
-        "eval": {"orbit_frames": 4, "fps": 4},
+        "log": {"every": 1, "images": 2, "checkpoint": 2, "validate": 2, "progress": False},
+        "eval": {"orbit_frames": 4, "fps": 4, "val_views": 2},
     }
 
 
@@ -74,23 +73,23 @@ def test_training_lowers_the_loss(cache, tmp_path):
     torch.manual_seed(0)
     train = load_views(cfg, "train", ctx.device)
     scene = neural_scene_from(cfg, fit_geometry(cfg, ctx, train), seed=0)
-    tr = make_trainer(cfg, scene, ctx.device)
-    assert tr.disc is None and tr.opt_d is None  # GAN off: nothing allocated
-    assert [g["name"] for g in tr.opt_g.param_groups] == ["features", "unet"]
+    t = build(cfg, scene)
+    model = t.modules["model"]
+    assert "disc" not in t.modules and "d" not in t.optimizers  # GAN off: nothing allocated
+    assert [g["name"] for g in t.optimizers["g"].param_groups] == ["features", "unet"]
 
     def l1() -> float:
-        rgb, _ = render_split(tr.model, train, seed=123)
+        rgb, _ = render_split(model, train, seed=123)
         return float((rgb - train.images).abs().mean())
 
     # Residual shader with a zero head: stage 2 starts exactly from the splatted stage-1 colours.
-    rgb0, cond0 = render_split(tr.model, train, seed=123)
+    rgb0, cond0 = render_split(model, train, seed=123)
     assert torch.allclose(rgb0, cond0[:, :3].permute(0, 2, 3, 1).clamp(1e-3, 1 - 1e-3), atol=1e-5)
 
     before = l1()
     losses = []
-    for _ in range(cfg.neural.steps):
-        losses.append(train_step(cfg, tr, train)["loss/l1"])
-        tr.step += 1
+    for k in range(cfg.neural.steps):
+        losses.append(train_step(cfg.neural, t, train, k)["loss/l1"])
     after = l1()
     assert all(math.isfinite(v) for v in losses)
     assert after < 0.8 * before, (before, after)  # measured: 0.086 -> 0.058
@@ -115,14 +114,16 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     b = load_checkpoint(cut)
     assert a["step"] == b["step"] == 4
     for key in ("model", "disc"):
-        assert a[key].keys() == b[key].keys()
-        for name in a[key]:
-            assert torch.equal(a[key][name], b[key][name]), (key, name)
-    for key in ("opt_g", "opt_d"):
-        for pid, st in a[key]["state"].items():
+        ma, mb = a["modules"][key], b["modules"][key]
+        assert ma.keys() == mb.keys()
+        for name in ma:
+            assert torch.equal(ma[name], mb[name]), (key, name)
+    for key in ("g", "d"):
+        for pid, st in a["optimizers"][key]["state"].items():
             for name, t in st.items():
-                assert torch.equal(t, b[key]["state"][pid][name]), (key, pid, name)
-    assert [r["val_psnr"] for r in a["history"]] == [r["val_psnr"] for r in b["history"]]
+                assert torch.equal(t, b["optimizers"][key]["state"][pid][name]), (key, pid, name)
+    hist_a, hist_b = a["extra"]["history"], b["extra"]["history"]
+    assert [r["val_psnr"] for r in hist_a] == [r["val_psnr"] for r in hist_b]
 
     # The training run evaluated the test split; metrics agree with a fresh `eval`.
     m = json.loads((full / "eval_test" / "metrics.json").read_text())

@@ -1,4 +1,4 @@
-"""The sampler's contract (DESIGN.md §1): exact SPS up to ε, Λ̂ error bound, no duplicates, determinism,
+"""The sampler's contract (docs/method.md): exact SPS up to ε, Λ̂ error bound, no duplicates, determinism,
 the floor, and calibration of inclusion frequencies against exact SPS and πps probabilities."""
 from __future__ import annotations
 

@@ -11,12 +11,15 @@ from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import ConfigError, load_config
 from nsplat.metrics import point_cloud_distances
 from nsplat.ops import splat_dense
-from nsplat.reconstruct import FitConfig, RenderConfig, fit, point_contributions, render_views, reposition
+from nsplat.data.views import PosedViews
+from nsplat.engine import LogConfig
+from nsplat.fitting import FitConfig, fit, point_contributions, reposition
+from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
 from nsplat.tasks import get_task
 from nsplat.tasks.reconstruct import Config, fibonacci_sphere
-from nsplat.truncated import splat_truncated
+from nsplat.render_truncated import splat_truncated
 
 
 def _cameras(count: int, res: int, dist: float = 3.0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -152,11 +155,20 @@ def _tiny_problem(n: int = 300, views: int = 8, res: int = 24):
     return gt_pts, images, vm, Ks, SurfelScene.from_points(SceneConfig(), s0, n0, features=0.5)
 
 
+def _lr(value: float) -> dict[str, float]:
+    return {a: value for a in ("means", "normals", "scales", "features")}
+
+
+def _views(images: torch.Tensor, vm: torch.Tensor, Ks: torch.Tensor) -> PosedViews:
+    return PosedViews(images, vm, Ks, [str(i) for i in range(images.shape[0])])
+
+
 def test_tiny_reconstruction_with_sampled_op_reduces_chamfer(tmp_path):
     gt_pts, images, vm, Ks, scene = _tiny_problem()
     before = point_cloud_distances(scene.means, gt_pts)
-    cfg = FitConfig(epochs=30, batch=4, lr=0.03, checkpoint_every=100)
-    fit(scene, images, vm, Ks, cfg, RenderConfig(renderer="splat", samples=40, eps=0.01), tmp_path, progress=False)
+    cfg = FitConfig(epochs=30, batch=4, learn=_lr(0.03))
+    fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="splat", samples=40, eps=0.01), tmp_path,
+        log=LogConfig(checkpoint=100, progress=False))
     after = point_cloud_distances(scene.means, gt_pts)
     assert after["chamfer"] < before["chamfer"] / 2.0, (before, after)
     assert after["chamfer_sq"] < before["chamfer_sq"] / 4.0, (before, after)
@@ -168,22 +180,24 @@ class _Interrupt(Exception):
 
 
 def test_fit_resumes_exactly(tmp_path):
-    cfg = FitConfig(epochs=3, batch=4, lr=0.03, reposition_every=1, min_weight=0.5)
+    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition_every=1, min_weight=0.5)
     rcfg = RenderConfig(renderer="splat")
+    lg = LogConfig(checkpoint=2, validate=1, progress=False)  # 2 steps per epoch: a checkpoint per epoch
     _, images, vm, Ks, straight = _tiny_problem(n=120, views=6, res=16)
-    fit(straight, images, vm, Ks, cfg, rcfg, tmp_path / "a", seed=3, progress=False)
+    views = _views(images, vm, Ks)
+    fit(straight, views, cfg, rcfg, tmp_path / "a", log=lg, seed=3)
 
-    def stop_at_last(epoch: int, scene: SurfelScene, writer) -> dict[str, float]:
-        if epoch == 2:  # killed during the last epoch, before its checkpoint
+    def stop_at_last(step: int, writer) -> dict[str, float]:
+        if step == 6:  # killed at the end of the last epoch, before its checkpoint
             raise _Interrupt
         return {}
 
     _, _, _, _, killed = _tiny_problem(n=120, views=6, res=16)
     with pytest.raises(_Interrupt):
-        fit(killed, images, vm, Ks, cfg, rcfg, tmp_path / "b", seed=3, progress=False, on_epoch=stop_at_last)
+        fit(killed, views, cfg, rcfg, tmp_path / "b", log=lg, seed=3, validate=stop_at_last)
     torch.manual_seed(999)  # a new process: global RNG state differs
     _, _, _, _, resumed = _tiny_problem(n=120, views=6, res=16)
-    fit(resumed, images, vm, Ks, cfg, rcfg, tmp_path / "b", seed=3, resume=True, progress=False)
+    fit(resumed, views, cfg, rcfg, tmp_path / "b", log=lg, seed=3, resume=True)
     for name, t in straight.state_dict().items():
         assert torch.equal(t, resumed.state_dict()[name]), name
     assert not torch.equal(straight.means, _tiny_problem(n=120, views=6, res=16)[4].means)
@@ -197,7 +211,7 @@ def test_task_registered_and_config_errors_name_the_key():
     cfg = load_config(Config, base, ["data.views=16", "render.renderer=truncated"])
     assert cfg.data.views == 16 and cfg.render.renderer == "truncated"
     for override, key in [("data.shape=dragon", "data.shape"), ("render.renderer=fast", "render.renderer"),
-                          ("optim.colour=1", "optim.colour"), ("scene.channels=4", "scene.channels"),
+                          ("optim.colour=1", "optim.colour"), ("optim.learn={colour: 1}", "optim.learn"), ("scene.channels=4", "scene.channels"),
                           ("render.estimator=biased", "render.estimator"), ("data.views=0", "data.views")]:
         with pytest.raises(ConfigError, match=key):
             load_config(Config, base, [override])

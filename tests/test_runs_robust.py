@@ -52,8 +52,8 @@ def _tiny_reconstruct(tmp: Path, epochs: int = 3, name: str = "tiny.yaml") -> Pa
            "init": {"count": 40}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
                                            "opacity": 1.0},
            "render": {"renderer": "splat", "samples": 3},
-           "optim": {"epochs": epochs, "batch": 2, "reposition": False, "checkpoint_every": 1},
-           "eval_every": 1000, "renders": 0}
+           "optim": {"epochs": epochs, "batch": 2, "reposition": False},
+           "log": {"checkpoint": 1, "validate": 0}, "renders": 0}
     path = tmp / name
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -249,5 +249,5 @@ def test_nested_range_errors_carry_the_section_prefix(tmp_path, capsys):
     assert code == 2 and one_line_error(err) == "config error: optim.batch: expected a value >= 1, got 0"
     with pytest.raises(ConfigError, match=r"^x\.y\.samples: expected a value >= 1, got 0"):
         from nsplat.config import from_dict
-        from nsplat.reconstruct import RenderConfig
+        from nsplat.render import RenderConfig
         from_dict(RenderConfig, {"samples": 0}, prefix="x.y.")

@@ -1,5 +1,7 @@
-"""Data: NeRF-synthetic loader, the procedural scene generator and its ray tracer."""
-from nsplat.data.nerf_synthetic import Views, load_split
+"""Data: the posed-views type, path resolution, and the loaders that return it (NeRF-synthetic, the
+procedural scene and its ray tracer, DSS point clouds, the synthetic room)."""
+from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.procedural import ProceduralSpec, ensure_scene, generate, make_scene
+from nsplat.data.views import PosedViews
 
-__all__ = ["Views", "load_split", "ProceduralSpec", "ensure_scene", "generate", "make_scene"]
+__all__ = ["PosedViews", "load_split", "ProceduralSpec", "ensure_scene", "generate", "make_scene"]

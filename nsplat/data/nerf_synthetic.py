@@ -8,7 +8,6 @@ optionally resized, with the intrinsics scaled to match.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Sequence
@@ -19,47 +18,10 @@ import torch
 import torch.nn.functional as F
 
 from nsplat.cameras import intrinsics_from_fov, opengl_c2w_to_viewmat, scale_intrinsics
+from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 
 SPLITS = ("train", "val", "test")
-
-
-@dataclasses.dataclass
-class Views:
-    """A set of posed images (one split of a scene).
-
-    Attributes:
-        images: ``[B, H, W, 3]`` float32 RGB in [0, 1], composited over ``background``.
-        alphas: ``[B, H, W, 1]`` float32 coverage in [0, 1].
-        viewmats: ``[B, 4, 4]`` float32 OpenCV world→camera.
-        Ks: ``[B, 3, 3]`` float32 intrinsics in pixels of the (resized) images.
-        names: ``B`` frame names (``file_path`` of the JSON, e.g. ``./test/r_0``).
-        background: ``[3]`` the colour composited under the images.
-    """
-
-    images: torch.Tensor
-    alphas: torch.Tensor
-    viewmats: torch.Tensor
-    Ks: torch.Tensor
-    names: list[str]
-    background: torch.Tensor
-
-    @property
-    def width(self) -> int:
-        return int(self.images.shape[2])
-
-    @property
-    def height(self) -> int:
-        return int(self.images.shape[1])
-
-    def __len__(self) -> int:
-        return int(self.images.shape[0])
-
-    def to(self, device: torch.device | str) -> "Views":
-        """Copy with every tensor on ``device``."""
-        return dataclasses.replace(self, **{f.name: getattr(self, f.name).to(device)
-                                            for f in dataclasses.fields(self)
-                                            if isinstance(getattr(self, f.name), torch.Tensor)})
 
 
 def _image_path(root: Path, file_path: str) -> Path:
@@ -120,7 +82,7 @@ def _pose(meta_path: Path, i: int, value: object) -> torch.Tensor:
 
 
 def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] | None = None,
-               background: Sequence[float] = (1.0, 1.0, 1.0), limit: int | None = None) -> Views:
+               background: Sequence[float] = (1.0, 1.0, 1.0), limit: int | None = None) -> PosedViews:
     """Load one split of a NeRF-synthetic scene.
 
     Args:
@@ -131,7 +93,8 @@ def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] 
         limit: keep only the first ``limit`` frames (``None``: all).
 
     Returns:
-        :class:`Views` (float32, CPU).
+        :class:`~nsplat.data.views.PosedViews` (float32, CPU; ``masks [B,H,W]`` the
+        alpha coverage, ``background`` the composited colour).
     """
     root = Path(root)
     if split not in SPLITS:
@@ -196,5 +159,5 @@ def load_split(root: str | Path, split: str, *, resolution: int | Sequence[int] 
     viewmats[:, 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=viewmats.dtype)  # exact after inverse
     Ks = intrinsics_from_fov(fov, W0, H0, batch=len(frames), dtype=torch.float64)
     Ks = scale_intrinsics(Ks, W / W0, H / H0)
-    return Views(images=x[..., :3].contiguous(), alphas=x[..., 3:].contiguous(),
-                 viewmats=viewmats.float(), Ks=Ks.float(), names=names, background=bg)
+    return PosedViews(images=x[..., :3].contiguous(), viewmats=viewmats.float(), Ks=Ks.float(), names=names,
+                      masks=x[..., 3].contiguous(), background=bg)

@@ -1,6 +1,6 @@
 """The DSS shape-reconstruction point clouds (bunny, teapot, yoga1, yoga6) with normals, via plyfile.
 
-The files live in ``<data root>/dss_pointclouds/`` (by default ``<repo>/../shared/data``). Each is a PLY
+The files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat.data.paths.data_root`). Each is a PLY
 with a ``vertex`` element carrying ``x y z nx ny nz``.
 """
 from __future__ import annotations
@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from plyfile import PlyData
 
+from nsplat.data.paths import data_root
 from nsplat.errors import DataError
 
 #: Shape name → file name inside ``dss_pointclouds/``.
@@ -24,8 +25,8 @@ DSS_SHAPES: dict[str, str] = {
 
 
 def default_data_root() -> Path:
-    """``<repo root>/../shared/data`` (the shared, read-only data folder)."""
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    """The shared, read-only data folder (:func:`nsplat.data.paths.data_root`)."""
+    return data_root()
 
 
 @dataclasses.dataclass

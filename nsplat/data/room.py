@@ -34,6 +34,7 @@ import torch
 
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import ConfigError
+from nsplat.data.views import PosedViews
 from nsplat.data.raytrace import Box, Material, Plane, Primitive, albedo, camera_rays, intersect
 from nsplat.poses import perturb_viewmats
 from nsplat.sh import sh_shade
@@ -146,13 +147,12 @@ class RoomData:
     outlier: torch.Tensor
     scene_size: float
 
-    @property
-    def width(self) -> int:
-        return int(self.images.shape[2])
-
-    @property
-    def height(self) -> int:
-        return int(self.images.shape[1])
+    def views(self) -> PosedViews:
+        """The reference frames as :class:`PosedViews`: the initial (perturbed) cameras as ``viewmats``,
+        the ground truth as ``viewmats_gt``, valid pixels as ``masks``."""
+        names = [f"frame_{i:03d}" for i in range(self.images.shape[0])]
+        return PosedViews(self.images, self.viewmats_init, self.Ks, names, masks=self.masks,
+                          viewmats_gt=self.viewmats)
 
 
 def room_primitives() -> list[Primitive]:

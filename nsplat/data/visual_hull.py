@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from nsplat.data.nerf_synthetic import Views
+from nsplat.data.views import PosedViews
 
 
 @dataclasses.dataclass
@@ -52,12 +52,12 @@ def _lookup(img: torch.Tensor, uv: torch.Tensor, z: torch.Tensor) -> tuple[torch
     return vals, inside
 
 
-def carve(views: Views, bbox: tuple[float, ...], grid: int, alpha_threshold: float = 0.5, dilate: int = 1,
+def carve(views: PosedViews, bbox: tuple[float, ...], grid: int, alpha_threshold: float = 0.5, dilate: int = 1,
           min_seen: float = 0.5) -> np.ndarray:
     """Occupancy ``[grid, grid, grid]`` (bool, index order x, y, z) of the visual hull in ``bbox``.
 
     Args:
-        views: posed images with coverage ``alphas``.
+        views: posed images with coverage ``masks [B,H,W]``.
         bbox: ``(xmin, ymin, zmin, xmax, ymax, zmax)`` world bounds of the grid.
         grid: voxels per side.
         alpha_threshold: coverage at or above which a pixel counts as inside the silhouette.
@@ -70,7 +70,7 @@ def carve(views: Views, bbox: tuple[float, ...], grid: int, alpha_threshold: flo
     occ = torch.ones(centres.shape[0], dtype=torch.bool)
     seen = torch.zeros(centres.shape[0])
     for v in range(len(views)):
-        mask = (views.alphas[v, :, :, 0] >= alpha_threshold).float()
+        mask = (views.masks[v] >= alpha_threshold).float()
         if dilate > 0:
             k = 2 * dilate + 1
             mask = torch.nn.functional.max_pool2d(mask[None, None], k, stride=1, padding=dilate)[0, 0]
@@ -93,13 +93,13 @@ def voxel_centres(bbox: tuple[float, ...], grid: int) -> torch.Tensor:
     return torch.stack(torch.meshgrid(*mids, indexing="ij"), -1).reshape(-1, 3)
 
 
-def hull_points(views: Views, bbox: tuple[float, ...], grid: int, *, alpha_threshold: float = 0.5,
+def hull_points(views: PosedViews, bbox: tuple[float, ...], grid: int, *, alpha_threshold: float = 0.5,
                 dilate: int = 1, min_seen: float = 0.5, max_points: int | None = None,
                 seed: int = 0) -> HullPoints:
     """Surface voxels of the visual hull of ``views`` with normals and colours.
 
     Args:
-        views: posed training images (``images`` composited on any background, ``alphas``).
+        views: posed training images (``images`` composited on any background, ``masks``).
         bbox, grid, alpha_threshold, dilate, min_seen: as in :func:`carve`.
         max_points: keep a uniformly random subset of at most this many (``None``: all).
         seed: seed of that subset.
@@ -132,7 +132,7 @@ def hull_points(views: Views, bbox: tuple[float, ...], grid: int, *, alpha_thres
                       voxel=float(voxel.mean()))
 
 
-def _median_colours(views: Views, means: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+def _median_colours(views: PosedViews, means: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """Median observed colour ``[N,3]`` over the views each point's normal faces (grey if none)."""
     samples = torch.full((len(views), means.shape[0], 3), float("nan"), dtype=torch.float64)
     for v in range(len(views)):

@@ -1,15 +1,18 @@
-"""Task registry: each task module exposes ``Config`` (a dataclass) and ``run(cfg, ctx)``.
+"""Task registry and the task contract.
 
-The config file's top-level ``task`` key selects the module; ``train.py`` dispatches here. A task
-module may also expose ``evaluate(ctx, split)`` and ``render(ctx)`` for the ``eval``/``render``
-sub-commands.
+The config file's top-level ``task`` key selects a module; the CLI (:mod:`nsplat.cli`) dispatches to it.
+A task module satisfies :class:`Task` (docs/architecture.md "Adding a task"): everything every task does
+the same way (loop, cadences, checkpoints, resume, seeds, JSON) is the engine's (:mod:`nsplat.engine`),
+every render goes through :mod:`nsplat.render`, every loader returns :class:`nsplat.data.PosedViews`.
 """
 from __future__ import annotations
 
 import importlib
 from types import ModuleType
+from typing import Any, Protocol
 
 from nsplat.config import ConfigError
+from nsplat.runctx import RunContext
 
 TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",
@@ -17,6 +20,31 @@ TASKS: dict[str, str] = {
     "reconstruct": "nsplat.tasks.reconstruct",
     "neural": "nsplat.tasks.neural",
 }
+
+
+class Task(Protocol):
+    """What a task module provides.
+
+    Attributes:
+        Config: its config dataclass (strict YAML + overrides, :mod:`nsplat.config`), with sections
+            ``render`` (:class:`nsplat.render.RenderConfig`) and ``log`` (:class:`nsplat.engine.LogConfig`).
+
+    Besides the methods below, a training task has ``build(cfg, ...) -> nsplat.engine.Trainables`` (its
+    modules and optimisers; the allocation table builds through it) and a ``step`` function of its own
+    signature that the engine calls once per step (``Engine.train(trainables, step)``): tasks keep their
+    own step (GAN, alternating groups and pruning, per-view backward).
+    """
+
+    Config: type
+
+    def run(self, cfg: Any, ctx: RunContext) -> Any:
+        """The ``train`` command: load data, ``build``, run the engine over ``step``, write outputs."""
+
+    def evaluate(self, cfg: Any, ctx: RunContext, split: str = "test") -> Any:
+        """The ``eval`` command on the run's latest checkpoint."""
+
+    def render(self, cfg: Any, ctx: RunContext) -> Any:
+        """The ``render`` command (images or video of the run's latest checkpoint)."""
 
 
 def get_task(name: str) -> ModuleType:

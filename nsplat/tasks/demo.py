@@ -15,8 +15,9 @@ import torch
 
 from nsplat.config import require, require_fields
 from nsplat.cameras import intrinsics_from_fov, look_at
-from nsplat.ops import splat, splat_dense
 from nsplat.ops.validation import memory_limit
+from nsplat import render as gateway
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 
 log = logging.getLogger("nsplat.demo")
@@ -76,21 +77,26 @@ def orbit_cameras(views: int, resolution: int, radius: float = 3.2) -> tuple[tor
     return V, K
 
 
+def render_config(cfg: Config) -> RenderConfig:
+    """The gateway settings of the demo: the sampled op with ``samples``/``eps`` on a white background."""
+    return RenderConfig(samples=cfg.samples, eps=cfg.eps, background=[1.0, 1.0, 1.0])
+
+
 def run(cfg: Config, ctx: RunContext) -> None:
     """Render ``cfg.views`` views and write ``demo.png`` (a row of views) into the run folder."""
     torch.manual_seed(cfg.seed)
     sc = {k: v.to(ctx.device) for k, v in demo_scene(cfg.points, cfg.seed).items()}
     V, K = (t.to(ctx.device) for t in orbit_cameras(cfg.views, cfg.resolution))
-    bg = torch.ones(3, device=ctx.device)
+    rcfg = render_config(cfg)
     args = (sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"], V, K, cfg.resolution,
             cfg.resolution)
-    out = splat(*args, samples=cfg.samples, eps=cfg.eps, seed=ctx.seed, background=bg)
+    out = gateway.render(*args, rcfg, seed=ctx.seed)
     row = torch.cat(list(out.image.clamp(0, 1)), dim=1).cpu().numpy()
     path = ctx.run_dir / "demo.png"
     iio.imwrite(path, (row * 255).round().astype(np.uint8))
     log.info("wrote %s (%d views, %d points, samples=%d, mean kernel evaluations/pixel %.1f)", path, cfg.views,
              cfg.points, cfg.samples, float(out.work.float().mean()))
     if cfg.compare_dense:
-        ref = splat_dense(*args, background=bg)
+        ref = gateway.render(*args, dataclasses.replace(rcfg, renderer="dense"))
         err = float((out.image - ref.image).abs().mean())
         log.info("mean abs difference to the dense renderer: %.5f", err)

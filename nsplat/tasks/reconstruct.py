@@ -1,80 +1,38 @@
 """Task ``reconstruct``: shape reconstruction from images (paper §4, Tables 1–3).
 
-Data: ground-truth images of a DSS point cloud rendered with the exact dense renderer
-(:func:`nsplat.ops.splat_dense`) under the paper's Lambert lights, black background, from random
-views on a sphere around the object (cached under ``data_cache/``; views are nested: the first k of
-a larger set are the k-view set). Init: a Fibonacci sphere enclosing the object. Optimisation:
-:func:`nsplat.reconstruct.fit`. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
+Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`). Init: a Fibonacci sphere
+enclosing the object. Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
 definitions, see :mod:`nsplat.metrics`), ``reconstruction.ply``, ``renders/*.png`` (GT | result).
 """
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
+from typing import Any
 
 import imageio.v3 as iio
 import numpy as np
 import torch
-from torch.utils.tensorboard import SummaryWriter
 
-from nsplat.cameras import intrinsics_from_fov, look_at
+from nsplat import fitting
+from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require_fields
-from nsplat.data.pointclouds import DSS_SHAPES, PointCloud, load_dss_shape
+from nsplat.data.dss import DataConfig, gt_views
+from nsplat.data.pointclouds import PointCloud, load_dss_shape
+from nsplat.engine import LogConfig, Trainables, checkpoint_rows, write_json
+from nsplat.fitting import FitConfig, fit
 from nsplat.metrics import point_cloud_distances
-from nsplat.reconstruct import FitConfig, RenderConfig, fit
-from nsplat.reconstruct import render as render_surfels
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
-from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
+from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.shading import lambert
 
 log = logging.getLogger(__name__)
-REPO_ROOT = Path(__file__).resolve().parents[2]
-#: Bumped when ground-truth rendering changes, so stale caches are not reused.
-GT_VERSION = 1
-
-
-@dataclasses.dataclass
-class DataConfig:
-    """Ground-truth images.
-
-    Attributes:
-        shape: a DSS shape (bunny, teapot, yoga1, yoga6). root: data folder ("" = ``<repo>/../shared/data``).
-        views: number of training views. width, height: image size in pixels.
-        fov_deg: horizontal field of view. distance: camera distance from the object centre, in units of
-            the enclosing-sphere radius. view_seed: seed of the view directions.
-        gt_scale: GT splat std-dev in units of each point's mean 3-NN spacing. gt_albedo: GT albedo (grey).
-        cache_dir: GT image cache ("" = ``<repo>/data_cache/reconstruct``).
-    """
-
-    shape: str = "bunny"
-    root: str = ""
-    views: int = 124
-    width: int = 64
-    height: int = 64
-    fov_deg: float = 40.0
-    distance: float = 3.0
-    view_seed: int = 0
-    gt_scale: float = 1.0
-    gt_albedo: float = 1.0
-    cache_dir: str = ""
-
-    def __post_init__(self) -> None:
-        if self.shape not in DSS_SHAPES:
-            raise ConfigError(f"data.shape: expected one of {sorted(DSS_SHAPES)}, got {self.shape!r}")
-        for key in ("views", "width", "height"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
-        if not 0 < self.fov_deg < 180:
-            raise ConfigError(f"data.fov_deg: expected in (0, 180), got {self.fov_deg}")
-        if self.distance <= 1.0:
-            raise ConfigError(f"data.distance: expected > 1 (cameras outside the object), got {self.distance}")
 
 
 @dataclasses.dataclass
@@ -98,7 +56,7 @@ class InitConfig:
 
 @dataclasses.dataclass
 class Config:
-    """Task ``reconstruct``. ``eval_every``: epochs between metric evaluations (TensorBoard);
+    """Task ``reconstruct``. ``log.validate``: steps between shape metrics (TensorBoard);
     ``renders``: number of held-out views rendered to PNG at the end."""
 
     task: str = "reconstruct"
@@ -108,7 +66,8 @@ class Config:
     scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: FitConfig = dataclasses.field(default_factory=FitConfig)
-    eval_every: int = 10
+    log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=0, validate=100,
+                                                                        checkpoint=50))
     renders: int = 3
 
     def __post_init__(self) -> None:
@@ -117,74 +76,6 @@ class Config:
                               f"got {self.scene.channels}")
         if self.optim.shading != "lambert":
             raise ConfigError("optim.shading: the reconstruct task's images are Lambert-shaded; expected 'lambert'")
-
-
-# ---------------------------------------------------------------------------------------------- data
-def view_cameras(count: int, pc: PointCloud, data: DataConfig, offset: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cameras ``(viewmats [count,4,4], Ks [count,3,3])`` looking at the object's centre.
-
-    View ``i`` has direction ``normalize(N(0, I))`` drawn from ``numpy.random.default_rng([view_seed, i])``,
-    so view sets are nested; ``offset`` shifts the indices (held-out views use a large offset).
-    """
-    dirs = np.stack([np.random.default_rng([data.view_seed, offset + i]).normal(size=3) for i in range(count)])
-    dirs = torch.as_tensor(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), dtype=torch.float64)
-    centre = pc.center.double()
-    eye = centre + data.distance * pc.radius * dirs
-    up = torch.where(dirs[:, 2:].abs() > 0.99, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
-                     torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    viewmats = look_at(eye, centre.expand_as(eye), up).float()
-    Ks = intrinsics_from_fov(math.radians(data.fov_deg), data.width, data.height, count)
-    return viewmats, Ks
-
-
-def gt_scene(pc: PointCloud, data: DataConfig) -> dict[str, torch.Tensor]:
-    """Op-ready GT surfels: isotropic std-dev ``gt_scale ×`` 3-NN spacing, opacity 1, grey albedo."""
-    sp = torch.as_tensor(knn_spacing(pc.points), dtype=pc.points.dtype) * data.gt_scale
-    n = pc.points.shape[0]
-    return {"means": pc.points, "normals": pc.normals, "scales": sp[:, None].expand(n, 2).contiguous(),
-            "opacities": torch.ones(n), "albedo": torch.full((n, 3), data.gt_albedo)}
-
-
-def render_gt(pc: PointCloud, data: DataConfig, viewmats: torch.Tensor, Ks: torch.Tensor,
-              render_cfg: RenderConfig) -> torch.Tensor:
-    """GT images ``[B,H,W,3]`` with the exact dense renderer (Lambert, black background)."""
-    gt = gt_scene(pc, data)
-    out = []
-    with torch.no_grad():
-        shaded = lambert(gt["albedo"], gt["normals"], viewmats)
-        for b in range(viewmats.shape[0]):
-            out.append(render_surfels(gt["means"], gt["normals"], gt["scales"], gt["opacities"], shaded[b],
-                              viewmats[b:b + 1], Ks[b:b + 1], data.width, data.height,
-                              dataclasses.replace(render_cfg, renderer="dense")).image)
-    return torch.cat(out, 0)
-
-
-def _cache_file(data: DataConfig, render_cfg: RenderConfig, tag: str) -> Path:
-    key = json.dumps({"v": GT_VERSION, "tag": tag, "shape": data.shape, "root": str(data.root),
-                      "w": data.width, "h": data.height, "fov": data.fov_deg, "dist": data.distance,
-                      "seed": data.view_seed, "gs": data.gt_scale, "ga": data.gt_albedo,
-                      "lp": render_cfg.lowpass, "near": render_cfg.near, "far": render_cfg.far}, sort_keys=True)
-    folder = Path(data.cache_dir) if data.cache_dir else REPO_ROOT / "data_cache" / "reconstruct"
-    return folder / f"{data.shape}-{hashlib.sha1(key.encode()).hexdigest()[:12]}-{tag}.pt"
-
-
-def cached_gt_images(pc: PointCloud, data: DataConfig, render_cfg: RenderConfig, count: int,
-                     offset: int = 0, tag: str = "train") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(images [count,H,W,3], viewmats, Ks)`` of views ``offset … offset+count-1``, rendering only the
-    views not yet in the cache (atomic write)."""
-    viewmats, Ks = view_cameras(count, pc, data, offset)
-    path = _cache_file(data, render_cfg, tag)
-    have = torch.load(path, weights_only=True) if path.is_file() else torch.zeros(0, data.height, data.width, 3)
-    if have.shape[0] < count:
-        log.info("rendering %d GT views of %s at %dx%d (dense)", count - have.shape[0], data.shape,
-                 data.width, data.height)
-        extra = render_gt(pc, data, viewmats[have.shape[0]:], Ks[have.shape[0]:], render_cfg)
-        have = torch.cat([have, extra], 0)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        torch.save(have, tmp)
-        os.replace(tmp, path)
-    return have[:count].clone(), viewmats, Ks
 
 
 def fibonacci_sphere(count: int, centre: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -207,32 +98,30 @@ def init_scene(pc: PointCloud, cfg: Config) -> SurfelScene:
 
 
 # ---------------------------------------------------------------------------------------------- run
-def _load(cfg: Config, device: torch.device) -> tuple[PointCloud, torch.Tensor, torch.Tensor, torch.Tensor]:
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    images, viewmats, Ks = cached_gt_images(pc, cfg.data, cfg.render, cfg.data.views)
-    return pc, images.to(device), viewmats.to(device), Ks.to(device)
+def build(cfg: Config, device: torch.device | str, points: int) -> Trainables:
+    """The task contract's ``build``: the fitter's module ``scene`` (``points`` surfels) and its optimiser."""
+    return fitting.build(SurfelScene(cfg.scene, points, device=device), cfg.optim)
 
 
 def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
     """Reconstruct ``cfg.data.shape``; writes ``metrics.json``, ``reconstruction.ply`` and PNG renders."""
     torch.manual_seed(ctx.seed)
     t0 = time.time()
-    pc, images, viewmats, Ks = _load(cfg, ctx.device)
+    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    views = gt_views(pc, cfg.data, cfg.render, cfg.data.views).to(ctx.device)
     scene = init_scene(pc, cfg).to(ctx.device)
     init_metrics = point_cloud_distances(scene.means, pc.points)
 
-    def on_epoch(epoch: int, sc: SurfelScene, writer: SummaryWriter) -> dict[str, float]:
-        if (epoch + 1) % cfg.eval_every and epoch + 1 != cfg.optim.epochs:
-            return {}
-        m = point_cloud_distances(sc.means, pc.points)
-        return {k: v for k, v in m.items() if k != "diagonal"}
+    def validate(done: int, writer: Any) -> dict[str, float]:
+        m = point_cloud_distances(scene.means, pc.points)
+        return {f"shape/{k}": v for k, v in m.items() if k != "diagonal"}
 
-    scalars = fit(scene, images, viewmats, Ks, cfg.optim, cfg.render, ctx.run_dir, seed=ctx.seed,
-                  resume=ctx.resume, on_epoch=on_epoch)
+    scalars = fit(scene, views, cfg.optim, cfg.render, ctx.run_dir, log=cfg.log, seed=ctx.seed, resume=ctx.resume,
+                  validate=validate, desc="reconstruct")
     metrics = _finish(cfg, ctx, pc, scene)
-    metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("loss"),
+    metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("train/loss"),
                    fit_seconds=time.time() - t0)
-    _write_json(ctx.run_dir / "metrics.json", metrics)
+    write_json(ctx.run_dir / "metrics.json", metrics)
     log.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)", metrics["chamfer"], metrics["chamfer_sq"],
              metrics["hausdorff"], metrics["hausdorff_sq"])
     return metrics
@@ -247,16 +136,12 @@ def _finish(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) ->
             "resolution": [cfg.data.width, cfg.data.height], "points": scene.num_points, "seed": ctx.seed, **m}
 
 
-def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2))
-    os.replace(tmp, path)
-
-
-def _restore(cfg: Config, ctx: RunContext, pc: PointCloud) -> SurfelScene:
-    scene = init_scene(pc, cfg)
-    scene.load_state_dict(load_checkpoint(ctx.run_dir)["scene"])
-    return scene.to(ctx.device)
+def restore(cfg: Config, ctx: RunContext) -> SurfelScene:
+    """The scene of the run's latest checkpoint (on ``ctx.device``)."""
+    payload = load_checkpoint(ctx.run_dir, map_location="cpu")
+    t = build(cfg, "cpu", checkpoint_rows(payload, "scene", "_means"))
+    t.load(payload)
+    return t.modules["scene"].to(ctx.device)
 
 
 def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) -> list[Path]:
@@ -264,7 +149,8 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
     rendered with the exact dense renderer; and ``renders/points.png``, a scatter plot of both clouds."""
     if cfg.renders < 1:
         return []
-    images, viewmats, Ks = cached_gt_images(pc, cfg.data, cfg.render, cfg.renders, offset=1_000_000, tag="heldout")
+    held = gt_views(pc, cfg.data, cfg.render, cfg.renders, heldout=True)
+    images, viewmats, Ks = held.images, held.viewmats, held.Ks
     folder = ctx.run_dir / "renders"
     folder.mkdir(parents=True, exist_ok=True)
     dense = dataclasses.replace(cfg.render, renderer="dense")
@@ -273,7 +159,7 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
         sc = scene.cpu()
         shaded = lambert(sc.features, sc.normals, viewmats)
         for b in range(cfg.renders):
-            rec = render_surfels(sc.means, sc.normals, sc.scales, sc.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
+            rec = gateway.render(sc.means, sc.normals, sc.scales, sc.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
                          cfg.data.width, cfg.data.height, dense).image[0]
             pair = torch.cat([images[b], rec], 1).clamp(0, 1)
             p = folder / f"view_{b}.png"
@@ -324,7 +210,7 @@ def write_point_plot(path: Path, points: torch.Tensor, pc: PointCloud) -> Path:
 def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, float]:
     """Distances of the last checkpoint's points to the GT (``split`` is ignored: there is one GT)."""
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    m = point_cloud_distances(_restore(cfg, ctx, pc).means.detach().cpu(), pc.points)
+    m = point_cloud_distances(restore(cfg, ctx).means.detach().cpu(), pc.points)
     log.info("%s", json.dumps(m, indent=2))
     return m
 
@@ -332,4 +218,4 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, flo
 def render(cfg: Config, ctx: RunContext) -> list[Path]:
     """Write the held-out PNG renders of the last checkpoint."""
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    return write_renders(cfg, ctx, pc, _restore(cfg, ctx, pc))
+    return write_renders(cfg, ctx, pc, restore(cfg, ctx))

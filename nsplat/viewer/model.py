@@ -18,7 +18,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
-from nsplat.ops import splat
+from nsplat.render import RenderConfig, render
 
 Mode = Literal["rgb", "features", "alpha", "depth"]
 MODES: tuple[str, ...] = ("rgb", "features", "alpha", "depth")
@@ -53,7 +53,8 @@ class ViewModel:
         shader: optional image-space shader ``f(feature image [1,C',H,W]) → RGB [1,3,H,W]`` (the U-Net);
             ``C' = C + 1`` when ``alpha_input`` (coverage appended). ``None``: RGB = first 3 channels.
         alpha_input: append the splatted alpha to the shader's input.
-        near, far, lowpass, composite: op settings of the run.
+        render_cfg: the run's render settings (:class:`nsplat.render.RenderConfig`); the viewer
+            renders with the sampled op and its own ``samples``/``eps`` (:class:`RenderSettings`).
         cameras: the training cameras, or ``None``.
         task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
     """
@@ -67,10 +68,7 @@ class ViewModel:
     colours: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
     shader: Callable[[torch.Tensor], torch.Tensor] | None = None
     alpha_input: bool = False
-    near: float = 0.01
-    far: float = 1e10
-    lowpass: float = 1.0
-    composite: str = "alpha"
+    render_cfg: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     cameras: TrainingCameras | None = None
     task: str = ""
     seed: int = 0
@@ -129,7 +127,7 @@ class ViewImages:
 @torch.no_grad()
 def render_view(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                 settings: RenderSettings) -> ViewImages:
-    """Render ``model`` from one camera through the op (and the shader, if any).
+    """Render ``model`` from one camera through the render gateway (and the shader, if any).
 
     Args:
         viewmat: ``[4,4]`` OpenCV world→camera. K: ``[3,3]`` intrinsics in pixels.
@@ -143,10 +141,9 @@ def render_view(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width:
     if model.colours is not None:
         feats = model.colours(feats, normals, V)
         feats = feats[0] if feats.dim() == 3 else feats
-    out = splat(model.means.detach(), normals, model.scales.detach(), model.opacities.detach(), feats, V, Kb,
-                int(width), int(height), samples=settings.samples, eps=settings.eps, composite=model.composite,
-                background=model.background.to(dev, feats.dtype), near=model.near, far=model.far,
-                lowpass=model.lowpass, seed=model.seed)
+    cfg = dataclasses.replace(model.render_cfg, renderer="splat", samples=settings.samples, eps=settings.eps)
+    out = render(model.means.detach(), normals, model.scales.detach(), model.opacities.detach(), feats, V, Kb,
+                 int(width), int(height), cfg, seed=model.seed, background=model.background.to(dev, feats.dtype))
     image, alpha = out.image[0], out.alpha[0]
     if model.shader is not None:
         cond = torch.cat([image, alpha], -1) if model.alpha_input else image

@@ -11,6 +11,8 @@ from typing import Any, Callable
 import torch
 
 from nsplat.config import ConfigError, load_config, read_yaml
+from nsplat.engine import op_seed
+from nsplat.render import RenderConfig, background_of
 from nsplat.runctx import RunContext
 from nsplat.scene import SurfelScene
 from nsplat.viewer.model import TrainingCameras, ViewModel
@@ -57,8 +59,8 @@ def neural_view(model: torch.nn.Module, cameras: TrainingCameras | None, seed: i
     """View of a :class:`nsplat.tasks.neural.NeuralRenderer` (features → op → U-Net)."""
     s, rc = model.scene, model.render_cfg
     return ViewModel(s.means, s.normals, s.scales, s.opacities, s.features, model.background,
-                     shader=_eval_unet(model, model.residual), alpha_input=model.alpha_input, near=rc.near,
-                     far=rc.far, lowpass=rc.lowpass, cameras=cameras, task="neural", seed=seed)
+                     shader=_eval_unet(model, model.residual), alpha_input=model.alpha_input, render_cfg=rc,
+                     cameras=cameras, task="neural", seed=seed)
 
 
 def _lambert(features: torch.Tensor, normals: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
@@ -68,28 +70,25 @@ def _lambert(features: torch.Tensor, normals: torch.Tensor, viewmat: torch.Tenso
 
 
 def surfel_view(scene: SurfelScene, cameras: TrainingCameras | None, *, shading: str = "none",
-                background: torch.Tensor | None = None, render_cfg: Any = None, task: str = "",
+                background: torch.Tensor | None = None, render_cfg: RenderConfig | None = None, task: str = "",
                 seed: int = 0) -> ViewModel:
     """View of RGB surfels; ``shading="lambert"`` shades them with the paper's camera-relative lights."""
     bg = background if background is not None else scene.means.new_zeros(scene.features.shape[1])
     return ViewModel(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, bg,
                      colours=_lambert if shading == "lambert" else None,
-                     near=getattr(render_cfg, "near", 0.01), far=getattr(render_cfg, "far", 1e10),
-                     lowpass=getattr(render_cfg, "lowpass", 1.0), cameras=cameras, task=task, seed=seed)
+                     render_cfg=render_cfg or RenderConfig(), cameras=cameras, task=task, seed=seed)
 
 
 def refine_view(model: torch.nn.Module, seed: int = 0) -> ViewModel:
     """View of a :class:`nsplat.tasks.refine.Refiner` (its shading, refined cameras as frusta)."""
     fr, s, rc = model.frames, model.scene, model.cfg.render
     with torch.no_grad():
-        V, K = model.camera(torch.arange(fr.count, device=fr.images.device))
+        V, K = model.camera(torch.arange(len(fr), device=fr.images.device))
     cams = TrainingCameras(V.detach(), K.detach(), fr.width, fr.height, fr.images)
-    bg = torch.tensor(rc.background, dtype=s.means.dtype, device=s.means.device)
-    if bg.numel() != s.features.shape[1]:
-        bg = bg.new_zeros(s.features.shape[1])
-    return ViewModel(s.means, s.normals, s.scales, s.opacities, s.features, bg,
-                     colours=lambda f, n, v: model.colours(v), near=rc.near, far=rc.far, lowpass=rc.lowpass,
-                     composite=rc.composite, cameras=cams, task="refine", seed=seed)
+    bg = background_of(rc, s.features.shape[1], s.means)
+    return ViewModel(s.means, s.normals, s.scales, s.opacities, s.features,
+                     s.means.new_zeros(s.features.shape[1]) if bg is None else bg,
+                     colours=lambda f, n, v: model.colours(v), render_cfg=rc, cameras=cams, task="refine", seed=seed)
 
 
 # ---------------------------------------------------------------------------------------------- run folders
@@ -119,8 +118,8 @@ def load_run(run_dir: Path, device: torch.device | str = "cpu") -> ViewModel:
     if task == "refine":
         from nsplat.tasks import refine
 
-        model, _, _, _ = refine.build(cfg, ctx)
-        return refine_view(model.eval(), seed=ctx.seed)
+        model, _ = refine.restore(cfg, ctx)
+        return refine_view(model.eval(), seed=op_seed(ctx.seed, "eval"))
     raise RunError(f"--run {run_dir}: task {task!r} has no viewer")
 
 
@@ -135,18 +134,14 @@ def _demo(cfg: Any, device: torch.device) -> ViewModel:
 
 
 def _reconstruct(cfg: Any, ctx: RunContext) -> ViewModel:
-    from nsplat.checkpoint import load_checkpoint
+    from nsplat.data.dss import cache_file, view_cameras
     from nsplat.data.pointclouds import load_dss_shape
     from nsplat.tasks import reconstruct as rec
 
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    state = load_checkpoint(ctx.run_dir, map_location="cpu")["scene"]
-    count = state["_means"].shape[0]
-    scene = SurfelScene(cfg.scene, count)
-    scene.load_state_dict(state)
-    scene = scene.to(ctx.device)
-    V, K = rec.view_cameras(cfg.data.views, pc, cfg.data)
-    cache = rec._cache_file(cfg.data, cfg.render, "train")
+    scene = rec.restore(cfg, ctx)
+    V, K = view_cameras(cfg.data.views, pc, cfg.data)
+    cache = cache_file(cfg.data, cfg.render, "train")
     images = None
     if cache.is_file():  # GT images only if already rendered (never re-render them for viewing)
         have = torch.load(cache, weights_only=True)
@@ -154,7 +149,7 @@ def _reconstruct(cfg: Any, ctx: RunContext) -> ViewModel:
     cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.data.width, cfg.data.height,
                            None if images is None else images.to(ctx.device))
     return surfel_view(scene, cams, shading=cfg.optim.shading, render_cfg=cfg.render, task="reconstruct",
-                       seed=ctx.seed)
+                       seed=op_seed(ctx.seed, "eval"))
 
 
 def cameras_of(images: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> TrainingCameras:

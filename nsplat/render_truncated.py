@@ -1,6 +1,6 @@
 """A deterministic truncated surface-splatting renderer (baseline), differentiable by autograd.
 
-Same EWA kernel, per-pixel depth and front-to-back alpha compositing as the op (DESIGN.md §1; uses
+Same EWA kernel, per-pixel depth and front-to-back alpha compositing as the op (docs/method.md; uses
 :func:`nsplat.ops.project`), but each kernel is **cut at ``cutoff`` standard deviations**
 (Mahalanobis distance ``sqrt(dᵀΣ⁻¹d) > cutoff`` → zero) and every pixel composites **exactly all
 points in range**, with no sampling. This is the gradient behaviour of DSS/2DGS-style rasterisers:

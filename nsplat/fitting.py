@@ -1,0 +1,205 @@
+"""The generic surfel fitter: a :class:`~nsplat.scene.SurfelScene` fitted to posed images (paper §4).
+
+Used by the shape task (:mod:`nsplat.tasks.reconstruct`) and by stage 1 of the neural task. Renders go
+through the gateway :mod:`nsplat.render`.
+
+* :func:`point_contributions` — per-point visual contribution (weight × colour) over a set of views.
+* :func:`reposition` — moves non-contributing points next to random visible ones (tangent jitter).
+* :func:`fit` — Adam on an L1 image loss with a step-halving schedule and per-epoch repositioning,
+  run by the engine (:mod:`nsplat.engine`: logging, atomic checkpoints, exact resume).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from nsplat.config import require, require_fields
+from nsplat.data.views import PosedViews
+from nsplat.engine import Engine, Hook, LogConfig, Trainables, generator, latest_payload, op_seed
+from nsplat.ops import tangent_frame
+from nsplat.render import RenderConfig, render, render_views
+from nsplat.scene import ATTRIBUTES, SurfelScene
+from nsplat.shading import lambert
+from nsplat.viewer.runs import cameras_of, surfel_view
+
+
+def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                        cfg: RenderConfig, *, seed: int = 0, chunk: int = 12,
+                        measure: Literal["radiance", "weight"] = "radiance",
+                        shading: Literal["lambert", "none"] = "lambert") -> torch.Tensor:
+    """Per-point visual contribution summed over views: ``[N]`` (no gradient).
+
+    ``measure="weight"``: ``Σ_views Σ_x w_k(x)`` (total compositing weight). ``measure="radiance"``:
+    ``Σ_views Σ_x w_k(x) · ‖c_k‖`` with ``c_k`` the point's (shaded, per camera) colour, so a visible but
+    black point — e.g. an outlier that learned to vanish against the black background — counts as
+    contributing nothing. Computed as the gradient of the summed one-channel image w.r.t. a unit probe
+    (``∂I(x)/∂f_k = w_k(x)``); with the sampled op it is the Horvitz–Thompson estimate (estimator
+    ``ht``), zero exactly for points never sampled with non-zero weight.
+    """
+    with torch.no_grad():
+        geo = (scene.means.detach(), scene.normals.detach(), scene.scales.detach(), scene.opacities.detach())
+        feats = scene.features.detach()
+    N, dtype, device = scene.num_points, geo[0].dtype, geo[0].device
+    total = torch.zeros(N, dtype=dtype, device=device)
+    per_camera = measure == "radiance" and shading == "lambert"
+    step = 1 if per_camera else chunk
+    for s in range(0, viewmats.shape[0], step):
+        vm, K = viewmats[s:s + step], Ks[s:s + step]
+        if measure == "weight":
+            colour = torch.ones(N, dtype=dtype, device=device)
+        elif per_camera:
+            colour = lambert(feats, geo[1], vm)[0].norm(dim=-1)
+        else:
+            colour = feats.norm(dim=-1)
+        probe = torch.ones(N, 1, dtype=dtype, device=device, requires_grad=True)
+        out = render(*geo, probe * colour[:, None], vm, K, width, height, cfg, seed=seed + s, estimator="ht")
+        (grad,) = torch.autograd.grad(out.image.sum(), probe)
+        total += grad[:, 0]
+    return total
+
+
+@torch.no_grad()
+def reposition(scene: SurfelScene, contributions: torch.Tensor, min_weight: float, jitter: float,
+               generator: torch.Generator, optimizer: torch.optim.Optimizer | None = None) -> int:
+    """Move every point with ``contributions < min_weight`` next to a random visible point.
+
+    The moved point copies the chosen point's normal, scales, opacity and features and is placed at
+    its position plus a Gaussian offset in its tangent plane with std-dev ``jitter × scale`` per axis.
+    The moved rows' Adam state is reset. Returns the number of moved points (0 when none is visible).
+    """
+    dead = (contributions < min_weight).nonzero().squeeze(1)
+    alive = (contributions >= min_weight).nonzero().squeeze(1)
+    if dead.numel() == 0 or alive.numel() == 0:
+        return 0
+    pick = alive[torch.randint(alive.numel(), (dead.numel(),), generator=generator).to(alive.device)]
+    normals = scene.normals[pick]
+    scales = scene.scales[pick]
+    t0, t1 = tangent_frame(normals)
+    z = torch.randn(dead.numel(), 2, generator=generator).to(normals) * jitter * scales
+    values = {"means": scene.means[pick] + z[:, :1] * t0 + z[:, 1:] * t1, "normals": normals,
+              "features": scene.features[pick]}
+    if scene.cfg.scale is None:
+        values["scales"] = scales
+    if scene.cfg.opacity is None:
+        values["opacities"] = scene.opacities[pick]
+    scene.replace(dead, values, optimizer)
+    return int(dead.numel())
+
+
+#: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
+PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
+
+
+@dataclasses.dataclass
+class FitConfig:
+    """Optimisation settings (defaults: the paper's).
+
+    Attributes:
+        epochs: passes over all views (the schedule's length; the engine counts steps,
+            ``epochs × ceil(views / batch)``). batch: views per step.
+        learn: Adam learning rate per attribute (``means``, ``normals``, ``scales``, ``opacities``,
+            ``features``); which attributes are learnable is the scene's ``learn`` list.
+        lr_decays: number of times the rate is multiplied by ``lr_gamma``, at regular epoch intervals.
+        betas: Adam decay rates.
+        shading: ``lambert`` (features are albedo, shaded per camera) or ``none`` (features rendered as is).
+        reposition: move non-contributing points after every ``reposition_every``-th epoch (paper: every
+            epoch; each check renders all views once more, so CPU runs may space it out).
+            contribution: what "contributes" means (:func:`point_contributions`): ``radiance`` (weight ×
+            colour, the paper's "visual contribution", default) or ``weight``. min_weight: a point contributes when
+            its contribution summed over all views is at least this. jitter: tangent offset of a moved
+            point, in units of its source point's scale.
+    """
+
+    epochs: int = 300
+    batch: int = 12
+    learn: dict[str, float] = dataclasses.field(default_factory=lambda: dict(PAPER_LR))
+    lr_decays: int = 5
+    lr_gamma: float = 0.5
+    betas: tuple[float, float] = (0.9, 0.999)
+    shading: Literal["lambert", "none"] = "lambert"
+    reposition: bool = True
+    reposition_every: int = 1
+    contribution: Literal["radiance", "weight"] = "radiance"
+    min_weight: float = 0.02
+    jitter: float = 1.0
+
+    def milestones(self) -> list[int]:
+        """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
+        return [round(k * self.epochs / (self.lr_decays + 1)) for k in range(1, self.lr_decays + 1)]
+
+    def __post_init__(self) -> None:
+        require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0")
+        require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
+                f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
+
+
+def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0) -> Trainables:
+    """Module ``scene``, Adam ``fit`` over its learnable attributes, the epoch scheduler and the generator
+    of the repositioning draws."""
+    optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas))
+    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.milestones(), gamma=cfg.lr_gamma)
+    return Trainables(modules={"scene": scene}, optimizers={"fit": optimizer}, schedulers={"fit": scheduler},
+                      generator=torch.Generator().manual_seed(seed))
+
+
+def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: RenderConfig, run_dir: str | Path, *,
+        log: LogConfig | None = None, seed: int = 0, resume: bool = False, background: torch.Tensor | None = None,
+        validate: Hook | None = None, desc: str = "fit") -> dict[str, float]:
+    """Optimise ``scene`` in place so its renders match ``views`` (L1, per-view backward) on the engine.
+
+    Args:
+        scene: the surfels; its learnable attributes are optimised.
+        views: target images ``[V,H,W,C]`` with their cameras.
+        cfg: optimisation settings. render_cfg: the gateway's settings. log: the engine's cadences (steps).
+        run_dir: TensorBoard logs go to ``run_dir/tb``, checkpoints to ``run_dir/checkpoints``.
+        seed: run seed (op seeds: :func:`nsplat.engine.op_seed` streams ``fit``, ``reposition``, ``batches``).
+        resume: continue from the last checkpoint in ``run_dir`` (bit-exact on the same machine).
+        validate: the engine's validation hook ``f(step, writer) -> scalars`` (e.g. shape metrics).
+
+    Returns:
+        the last step's scalars.
+    """
+    V, W, H = len(views), views.width, views.height
+    images, viewmats, Ks = views.images, views.viewmats, views.Ks
+    t = build(scene, cfg, seed)
+    optimizer, scheduler = t.optimizers["fit"], t.schedulers["fit"]
+    steps_per_epoch = math.ceil(V / cfg.batch)
+    engine = Engine(Path(run_dir), log or LogConfig(), cfg.epochs * steps_per_epoch, desc=desc)
+    start = engine.resume(t, latest_payload(Path(run_dir), resume))
+
+    def step(k: int) -> dict[str, float]:
+        epoch, s = divmod(k, steps_per_epoch)
+        perm = torch.randperm(V, generator=generator(seed, "batches", epoch))
+        idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
+        optimizer.zero_grad(set_to_none=True)
+        loss_val = 0.0
+        # Backward per view: memory stays at one view's graph; gradients are summed.
+        for j, v in enumerate(idx.tolist()):
+            img = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
+                               seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
+                               background=background)
+            loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
+            loss.backward()
+            loss_val += loss.item()
+        optimizer.step()
+        out = {"train/loss": loss_val}
+        if s + 1 == steps_per_epoch:
+            moved = 0
+            if cfg.reposition and (epoch + 1) % cfg.reposition_every == 0:
+                contrib = point_contributions(scene, viewmats, Ks, W, H, render_cfg,
+                                              seed=op_seed(seed, "reposition", epoch), chunk=cfg.batch,
+                                              measure=cfg.contribution, shading=cfg.shading)
+                moved = reposition(scene, contrib, cfg.min_weight, cfg.jitter, t.generator, optimizer)
+            scheduler.step()
+            out.update({"epoch/moved": float(moved), "epoch/lr": optimizer.param_groups[0]["lr"]})
+        return out
+
+    cams = cameras_of(images, viewmats, Ks)
+    return engine.train(t, step, start=start, validate=validate,
+                        view=lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
+                                                 render_cfg=render_cfg, task=desc, seed=op_seed(seed, "eval")))

@@ -1,0 +1,250 @@
+"""Configuration of the ``neural`` task (see :mod:`nsplat.tasks.neural`)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from nsplat.config import ConfigError, require_fields
+from nsplat.engine import LogConfig
+from nsplat.fitting import FitConfig
+from nsplat.render import RenderConfig
+from nsplat.scene import ATTRIBUTES
+
+
+@dataclasses.dataclass
+class ProceduralConfig:
+    """The embedded procedural scene (:class:`nsplat.data.ProceduralSpec`), generated on first use.
+
+    Attributes:
+        seed: scene seed. resolution: rendered image side (px). views: (train, val, test) counts.
+        objects: number of objects. cache_dir: where scenes are generated (relative: to the repo root).
+    """
+
+    seed: int = 0
+    resolution: int = 64
+    views: tuple[int, int, int] = (40, 8, 8)
+    objects: int = 4
+    cache_dir: str = "data_cache"
+
+    def __post_init__(self) -> None:
+        require_fields(self, resolution=">=1", views=">=1", objects=">=1")
+
+
+@dataclasses.dataclass
+class DataConfig:
+    """Where the posed images come from.
+
+    Attributes:
+        source: ``procedural`` (the embedded scene) or ``nerf_synthetic`` (a folder at ``root``).
+        root: NeRF-synthetic scene folder (relative paths: to the repo root).
+        resolution: image side after resizing (``null``: as stored).
+        background: RGB composited under the RGBA images (white: NeRF's evaluation protocol).
+        train_limit, val_limit, test_limit: use only the first k frames of a split (``null``: all).
+    """
+
+    source: Literal["procedural", "nerf_synthetic"] = "procedural"
+    root: str | None = None
+    resolution: int | None = None
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    procedural: ProceduralConfig = dataclasses.field(default_factory=ProceduralConfig)
+    train_limit: int | None = None
+    val_limit: int | None = None
+    test_limit: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.source == "nerf_synthetic" and not self.root:
+            raise ConfigError("data.root: required when data.source is nerf_synthetic")
+        if self.resolution is not None and self.resolution < 8:
+            raise ConfigError(f"data.resolution: expected >= 8 pixels or null, got {self.resolution}")
+        if any(not 0.0 <= c <= 1.0 for c in self.background):
+            raise ConfigError(f"data.background: expected RGB values in [0, 1], got {list(self.background)}")
+
+
+@dataclasses.dataclass
+class GeometryFitConfig(FitConfig):
+    """:class:`nsplat.fitting.FitConfig` with this stage's defaults (short CPU schedule, RGB
+    features rendered without shading: photographs carry their own)."""
+
+    epochs: int = 8
+    batch: int = 4
+    learn: dict[str, float] = dataclasses.field(default_factory=lambda: {
+        "means": 0.002, "normals": 0.01, "scales": 0.005, "opacities": 0.05, "features": 0.05})
+    lr_decays: int = 2
+    shading: Literal["none"] = "none"
+    reposition_every: int = 4
+
+
+@dataclasses.dataclass
+class GeometryConfig:
+    """Stage 1: RGB surfels fitted to the training views.
+
+    Attributes:
+        init: ``hull`` (visual hull of the training silhouettes) or ``ply`` (a PLY written by
+            :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
+            run's ``geometry.ply``).
+        ply: path of that PLY (relative: to the repo root).
+        bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
+            :func:`nsplat.data.visual_hull.carve`. max_points: cap on the initial point count.
+        scale_factor: initial surfel std-dev in units of the mean 3-NN spacing.
+        opacity: constant opacity (nothing allocated) or ``null`` for learned per-point opacities.
+        init_opacity: initial per-point opacity.
+        learn: attributes fitted in this stage (rates in ``optim.learn``).
+        optim: :class:`GeometryFitConfig` (``epochs: 0`` keeps the initial points).
+        log: the stage's cadences in fitter steps (its progress bar follows ``log.progress``).
+        prune_opacity: points whose opacity ends below this are dropped before stage 2.
+    """
+
+    init: Literal["hull", "ply"] = "hull"
+    ply: str | None = None
+    bbox: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
+    grid: int = 64
+    alpha_threshold: float = 0.5
+    dilate: int = 1
+    min_seen: float = 0.5
+    max_points: int = 20000
+    scale_factor: float = 1.0
+    opacity: float | None = None
+    init_opacity: float = 0.9
+    learn: list[str] = dataclasses.field(default_factory=lambda: ["means", "normals", "scales", "opacities",
+                                                                  "features"])
+    optim: GeometryFitConfig = dataclasses.field(default_factory=GeometryFitConfig)
+    log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=0, validate=0,
+                                                                        checkpoint=10))
+    prune_opacity: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.init == "ply" and not self.ply:
+            raise ConfigError("geometry.ply: required when geometry.init is ply")
+        if self.grid < 8:
+            raise ConfigError(f"geometry.grid: expected >= 8, got {self.grid}")
+        if self.max_points < 1:
+            raise ConfigError(f"geometry.max_points: expected >= 1, got {self.max_points}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ConfigError(f"geometry.init_opacity: expected a value in (0, 1), got {self.init_opacity}")
+        bad = [a for a in self.learn if a not in ATTRIBUTES]
+        if bad:
+            raise ConfigError(f"geometry.learn: unknown attribute(s) {bad}; expected a subset of {list(ATTRIBUTES)}")
+        if self.opacity is not None and "opacities" in self.learn:
+            raise ConfigError("geometry.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")
+
+
+@dataclasses.dataclass
+class UNetConfig:
+    """Shader network (:class:`nsplat.models.UNet`)."""
+
+    depth: int = 4
+    width: int = 32
+    max_width: int = 128
+    norm: Literal["batch", "instance", "group", "none"] = "group"
+    dropout: float = 0.0
+    dropout_layers: int = 2
+    upsample: Literal["transpose", "bilinear"] = "bilinear"
+    output_range: tuple[float, float] = (0.0, 1.0)
+
+
+@dataclasses.dataclass
+class GanConfig:
+    """Conditional PatchGAN (:class:`nsplat.models.PatchDiscriminator`) and the adversarial loss.
+
+    Attributes:
+        enabled: train with the adversarial term (``false``: L1 only; no discriminator is built).
+        mode: ``lsgan`` or ``bce``. weight: adversarial weight (pix2pix: 1). lambda_l1: L1 weight (100).
+        lr, betas: discriminator Adam. width, layers, norm: discriminator shape.
+        start: step of stage 2 at which the adversarial term starts (the L1 term alone before).
+    """
+
+    enabled: bool = True
+    mode: Literal["lsgan", "bce"] = "lsgan"
+    weight: float = 1.0
+    lambda_l1: float = 100.0
+    lr: float = 2e-4
+    betas: tuple[float, float] = (0.5, 0.999)
+    width: int = 32
+    layers: int = 3
+    norm: Literal["batch", "instance", "group", "none"] = "instance"
+    start: int = 0
+
+
+@dataclasses.dataclass
+class NeuralConfig:
+    """Stage 2: learned point features + U-Net shader (+ PatchGAN).
+
+    Attributes:
+        steps: optimisation steps. batch: training views per step.
+        features: feature channels C per point.
+        feature_init_std: std-dev of the random initial features beyond the first three (colour).
+        alpha_input: feed the splatted coverage to the U-Net as an extra channel.
+        residual: the U-Net predicts a residual (in logit space, zero-initialised head) around the
+            first three splatted feature channels, which start as the stage-1 colours composited on
+            the data background; so stage 2 starts from the stage-1 render.
+        learn: learnable point attributes → learning rate (others are frozen buffers).
+        lr: U-Net learning rate. betas: its Adam decay rates.
+        lr_final: every learning rate decays exponentially to this fraction at the last step.
+        unet, gan: the networks.
+    """
+
+    steps: int = 400
+    batch: int = 4
+    features: int = 16
+    feature_init_std: float = 0.1
+    alpha_input: bool = True
+    residual: bool = True
+    learn: dict[str, float] = dataclasses.field(default_factory=lambda: {"features": 0.01, "means": 1e-4,
+                                                                         "opacities": 0.01})
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.5, 0.999)
+    lr_final: float = 0.1
+    unet: UNetConfig = dataclasses.field(default_factory=UNetConfig)
+    gan: GanConfig = dataclasses.field(default_factory=GanConfig)
+
+    def __post_init__(self) -> None:
+        for key in ("steps", "batch", "features"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"neural.{key}: expected >= 1, got {getattr(self, key)}")
+        if self.residual and self.features < 3:
+            raise ConfigError(f"neural.residual: needs neural.features >= 3, got {self.features}")
+        bad = [a for a in self.learn if a not in ATTRIBUTES]
+        if bad:
+            raise ConfigError(f"neural.learn: unknown attribute(s) {bad}; expected a subset of {list(ATTRIBUTES)}")
+        if not 0.0 < self.lr_final <= 1.0:
+            raise ConfigError(f"neural.lr_final: expected a fraction in (0, 1], got {self.lr_final}")
+
+
+@dataclasses.dataclass
+class EvalConfig:
+    """Evaluation and rendering.
+
+    Attributes:
+        split: held-out split evaluated at the end of training (and by ``eval`` by default).
+        images: write rendered/GT PNGs. orbit_frames, fps: the ``render`` command's orbit video.
+        val_views: views per split in the training-time validation (``log.validate``; ``history.json``).
+    """
+
+    split: Literal["train", "val", "test"] = "test"
+    val_views: int = 8
+    images: bool = True
+    orbit_frames: int = 60
+    fps: int = 20
+
+
+@dataclasses.dataclass
+class Config:
+    """Task ``neural`` (see the module docstring)."""
+
+    task: str = "neural"
+    seed: int = 0
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
+    geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+    neural: NeuralConfig = dataclasses.field(default_factory=NeuralConfig)
+    log: LogConfig = dataclasses.field(default_factory=LogConfig)
+    eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+
+    def __post_init__(self) -> None:
+        if self.task != "neural":
+            raise ConfigError(f"task: expected 'neural', got {self.task!r}")
+        if self.seed < 0:
+            raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        if "opacities" in self.neural.learn and self.geometry.opacity is not None:
+            raise ConfigError("neural.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")

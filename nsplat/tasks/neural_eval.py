@@ -1,0 +1,113 @@
+"""Evaluation outputs of the ``neural`` task: held-out metrics with PNGs, and the orbit video."""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import imageio
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from nsplat.cameras import look_at
+from nsplat.data.views import PosedViews
+from nsplat.engine import write_json
+from nsplat.metrics_image import lpips, lpips_status, psnr, ssim
+from nsplat.runctx import RunContext
+from nsplat.tasks.neural import NeuralRenderer, render_split
+from nsplat.tasks.neural_config import Config
+
+log = logging.getLogger("nsplat.tasks.neural")
+
+
+def _stats(x: torch.Tensor) -> dict[str, float]:
+    x = x.double()
+    return {"mean": float(x.mean()), "std": float(x.std(unbiased=False)) if x.numel() > 1 else 0.0}
+
+
+def _png(x: torch.Tensor) -> np.ndarray:
+    return (x.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,
+                   seed: int) -> dict:
+    """PSNR/SSIM (LPIPS if available offline) per view of ``views`` (split ``split``) on the configured
+    background, rendered with op seed ``seed``.
+
+    Writes ``eval_<split>/metrics.json`` (mean ± std), ``per_view.json`` and ``<name>.png`` /
+    ``<name>_gt.png`` per view; logs the means. Returns the metrics dict.
+    """
+    t0 = time.perf_counter()
+    rgb, _ = render_split(model, views, seed=seed)
+    seconds = time.perf_counter() - t0
+    p, s = psnr(rgb, views.images), ssim(rgb, views.images)
+    ok, lp_msg = lpips_status()
+    lp = lpips(rgb, views.images) if ok else None
+    out_dir = ctx.run_dir / f"eval_{split}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    per_view = []
+    for i, name in enumerate(views.names):
+        stem = Path(name).name
+        row = {"name": name, "psnr": float(p[i]), "ssim": float(s[i])}
+        if lp is not None:
+            row["lpips"] = float(lp[i])
+        per_view.append(row)
+        if cfg.eval.images:
+            iio.imwrite(out_dir / f"{stem}.png", _png(rgb[i]))
+            iio.imwrite(out_dir / f"{stem}_gt.png", _png(views.images[i]))
+    metrics = {"split": split, "views": len(views), "resolution": [views.width, views.height],
+               "background": list(cfg.data.background), "renderer": cfg.render.renderer,
+               "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
+               "lpips": _stats(lp) | {"backbone": "alex"} if lp is not None else lp_msg,
+               "render_seconds": seconds}
+    write_json(out_dir / "metrics.json", metrics)
+    write_json(out_dir / "per_view.json", {"views": per_view})
+    log.info("held-out %s (%d views, %dx%d): PSNR %.2f ± %.2f dB, SSIM %.4f ± %.4f, LPIPS %s", split, len(views),
+             views.width, views.height, metrics["psnr"]["mean"], metrics["psnr"]["std"], metrics["ssim"]["mean"],
+             metrics["ssim"]["std"], metrics["lpips"] if isinstance(metrics["lpips"], str)
+             else f"{metrics['lpips']['mean']:.4f}")
+    log.info("metrics written to %s", out_dir / "metrics.json")
+    return metrics
+
+
+def orbit_cameras(train: PosedViews, frames: int) -> torch.Tensor:
+    """``[frames,4,4]`` cameras on a circle at the training cameras' mean distance and elevation,
+    looking at the point nearest to all training optical axes, up = mean camera up."""
+    V = train.viewmats.double().cpu()
+    R, t = V[:, :3, :3], V[:, :3, 3]
+    eyes = -(R.transpose(1, 2) @ t[..., None])[..., 0]
+    axes = R[:, 2, :]  # camera z (forward) in world coordinates
+    up = -R[:, 1, :].mean(0)
+    up = up / up.norm()
+    # Least-squares point closest to all optical axes.
+    P = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]
+    target = torch.linalg.lstsq(P.sum(0), (P @ eyes[..., None]).sum(0)).solution[:, 0]
+    rel = eyes - target
+    height = float((rel @ up).mean())
+    radius = float((rel - (rel @ up)[:, None] * up).norm(dim=-1).mean())
+    e1 = torch.linalg.cross(up, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    if e1.norm() < 1e-6:
+        e1 = torch.linalg.cross(up, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(up, e1)
+    ang = torch.arange(frames, dtype=torch.float64) / frames * 2 * math.pi
+    eye = target + radius * (torch.cos(ang)[:, None] * e1 + torch.sin(ang)[:, None] * e2) + height * up
+    return look_at(eye, target.expand_as(eye), up).float()
+
+
+def write_orbit(cfg: Config, ctx: RunContext, model: NeuralRenderer, train: PosedViews, seed: int) -> Path:
+    """Write ``orbit.mp4``: ``model`` along a circle of cameras around the training cameras' target."""
+    viewmats = orbit_cameras(train, cfg.eval.orbit_frames).to(ctx.device)
+    count = viewmats.shape[0]
+    orbit = PosedViews(train.images[:1].expand(count, -1, -1, -1), viewmats,
+                       train.Ks[:1].expand(count, 3, 3).contiguous(), [f"orbit_{i}" for i in range(count)])
+    rgb, _ = render_split(model, orbit, seed=seed)
+    frames = _png(rgb)
+    H, W = frames.shape[1:3]
+    frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")  # even sizes for yuv420p
+    path = ctx.run_dir / "orbit.mp4"
+    imageio.mimwrite(path, list(frames), fps=cfg.eval.fps, macro_block_size=1)
+    log.info("orbit video (%d frames) written to %s", len(frames), path)
+    return path
