@@ -62,7 +62,7 @@ def test_ht_z2_does_not_grow_with_draws():
 
 def test_stratified_draws_keep_ht_unbiased():
     """Stratified uniforms across pixels change the joint law of the draws, not the per-pixel marginals."""
-    st = _study("ht", 4, per_group=100, stratified=True)
+    st = _study("ht", 4, per_group=50, stratified=True)
     z = st.z()
     assert float((z ** 2).mean()) < 1.6 and float(z.abs().max()) < 5.5
 
