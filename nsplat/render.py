@@ -14,7 +14,7 @@ from typing import Literal
 
 import torch
 
-from nsplat.config import require, require_fields
+from nsplat.config import FieldError, require, require_fields
 from nsplat.ops import SplatOutput, SplatSettings, splat, splat_dense
 from nsplat.render_truncated import splat_truncated
 from nsplat.scene import SurfelScene
@@ -66,8 +66,13 @@ class RenderConfig:
         require(self.far > self.near, "far", f"a value > near ({self.near})", self.far)
         require(self.renderer != "truncated" or self.composite == "alpha", "composite",
                 "alpha with renderer truncated", self.composite)
-        if self.renderer == "splat":
-            self.op_settings()  # the op's own checks (e.g. hermite_order <= 16), at construction
+        if self.renderer == "splat":  # the op's own checks (e.g. hermite_order <= 16), at construction
+            try:
+                self.op_settings()
+            except (TypeError, ValueError) as exc:  # "<name>: expected ..., got ...": a config field error
+                key, _, rest = str(exc).partition(": ")
+                expected = rest.removeprefix("expected ").rsplit(", got ", 1)[0]
+                raise FieldError(key, expected, getattr(self, key, None)) from None
 
     def op_settings(self, estimator: str | None = None) -> SplatSettings:
         """The sampled op's settings of this config (``estimator`` overrides ``self.estimator``)."""
