@@ -4,6 +4,11 @@ Stages (each usable on its own, PyTorch3D style):
     :func:`nsplat.ops.project`  differentiable EWA projection (PyTorch autograd)
     :func:`sample`              per-pixel sequential Poisson sample over the radix tree (native, no grad)
     :func:`composite_sample`    compositing of a given sample with the estimator's backward (native)
+
+Each validates its arguments (``ops/validation.py``) and then calls the custom ops of
+``ops/library.py`` (``nsplat::sample``, ``nsplat::composite_forward``), which dispatch on the device and
+carry the autograd, fake kernels and ``torch.compile`` support. Inside an autocast region the stages run
+in float32 (docs/op.md §7).
 """
 from __future__ import annotations
 
@@ -11,7 +16,8 @@ import dataclasses
 
 import torch
 
-from .library import _entries_by_point, _entries_by_point_sorted, composite_forward_op, sample_op  # noqa: F401
+from .library import _entries_by_point, _entries_by_point_sorted  # noqa: F401 - re-exported (tests, benchmarks)
+from .library import composite_forward_op, sample_op
 from .output import SplatOutput
 from .projection import Projected, project
 from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_composite_call, check_deterministic,
