@@ -229,7 +229,6 @@ def check_deterministic(deterministic) -> None:
         raise TypeError(f"deterministic: expected a bool, got {type(deterministic).__name__}")
 
 
-@torch.compiler.assume_constant_result
 def _physical_memory() -> int:
     try:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
@@ -237,11 +236,15 @@ def _physical_memory() -> int:
         return 2**40
 
 
+#: Physical RAM in bytes, read once at import (a constant while torch.compile traces; no os call in the graph).
+PHYSICAL_MEMORY = _physical_memory()
+
+
 def memory_limit(device: torch.device) -> int:
     """Bytes a single call may at most allocate: the device's total memory (physical RAM on CPU)."""
     if device.type == "cuda":
         return int(torch.cuda.get_device_properties(device).total_memory)
-    return _physical_memory()
+    return PHYSICAL_MEMORY
 
 
 def check_allocation(*, B: int, N: int, C: int, width: int, height: int, samples: int, dtype: torch.dtype,
