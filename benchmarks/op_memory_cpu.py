@@ -9,7 +9,7 @@ gradients; PyTorch's CPU allocator returns large blocks to the system, so nothin
 part (projection, per-point gradients) is measured by the same N at 8×8 pixels and subtracted to give
 the per-slot cost, which is compared with the bound's 24 bytes per slot.
 ``--order sorted`` replaces the native counting sort of the backward's per-point order by the device
-sort used on other devices (``nsplat.ops.functional._entries_by_point_sorted``) for comparison.
+sort used on other devices (``nsplat.ops.library._entries_by_point_sorted``) for comparison.
 Scene: ``benchmarks/op_cpu.py``'s sphere. Writes ``benchmarks/results/op_memory_cpu.json``.
 
     python benchmarks/op_memory_cpu.py
@@ -37,13 +37,13 @@ def one(N: int, res: int, samples: int, order: str) -> dict:
     """Measure one configuration in this process."""
     import torch
 
-    from nsplat.ops import functional, splat
+    from nsplat.ops import library, splat
     from nsplat.ops.build import backend
     from op_cpu import scene
 
     backend(torch.device("cpu"))
     if order == "sorted":
-        functional._entries_by_point = functional._entries_by_point_sorted
+        library._entries_by_point = lambda indices, N, nat=None: library._entries_by_point_sorted(indices, N)
     warm, Vw, Kw = scene(1000, 16)
     splat(*[t.clone().requires_grad_() for t in warm], Vw, Kw, 16, 16, samples=4).image.sum().backward()
     params, V, K = scene(N, res)

@@ -11,8 +11,8 @@ version of the ablation, because 300 views × 20 epochs does not fit the CPU bud
 """
 from __future__ import annotations
 
-from table1 import IMAGES, common_args, fmt, run_all, write_json
-from table2 import plot
+from ablation import report
+from table1 import common_args, run_all
 
 VIEWS = (16, 64, 124, 300)
 #: The paper's Table 3 (HD, CD as printed).
@@ -34,19 +34,8 @@ def main() -> None:
     args = common_args(__doc__.splitlines()[0])
     jobs = [(f"bunny-v{v}", "bunny", overrides(v, args.setting)) for v in VIEWS]
     rows = run_all(jobs, "table3", args)
-    done = [(x, r) for x, r in zip(VIEWS, rows) if r is not None]
-    lines = ["| views | epochs | HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | paper HD | paper CD | time s |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for v, r in zip(VIEWS, rows):
-        if r is None:
-            lines.append(f"| {v} | | not run | | | | {PAPER_TABLE3[v][0]} | {PAPER_TABLE3[v][1]} | |")
-            continue
-        lines.append(f"| {v} | {r['epochs']} | {fmt(r['hausdorff'])} | {fmt(r['chamfer'])} | {fmt(r['hausdorff_sq'])} | "
-                     f"{fmt(r['chamfer_sq'])} | {PAPER_TABLE3[v][0]} | {PAPER_TABLE3[v][1]} | {r['wall_s']:.0f} |")
-    table = "\n".join(lines)
-    print(table)
-    plot([x for x, _ in done], [r for _, r in done], "training views", IMAGES / f"ablation_views-{args.setting}.png", logx=True)
-    print(f"\nwrote {write_json('table3', args, [r for _, r in done], {'paper': PAPER_TABLE3, 'markdown': table})}")
+    report("table3", args, VIEWS, rows, PAPER_TABLE3, ("views", "epochs"), ("epochs",), "training views",
+           "ablation_views")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,8 @@ from typing import Literal
 
 import torch
 
-from nsplat.config import require, require_fields
-from nsplat.ops import SplatOutput, splat, splat_dense
+from nsplat.config import FieldError, require, require_fields
+from nsplat.ops import SplatOutput, SplatSettings, splat, splat_dense
 from nsplat.render_truncated import splat_truncated
 from nsplat.scene import SurfelScene
 from nsplat.shading import lambert
@@ -26,6 +26,10 @@ RENDERERS = ("splat", "dense", "truncated")
 @dataclasses.dataclass
 class RenderConfig:
     """Which renderer and with which settings (the op's arguments, see :func:`nsplat.ops.splat`).
+
+    The op's fields (``samples`` … ``stratified``) are exactly those of :class:`nsplat.ops.SplatSettings`,
+    with its defaults; :meth:`op_settings` builds the value the op and :class:`nsplat.ops.Splatter` take
+    (and, for the sampled renderer, validates it with the op's own checks at construction).
 
     Attributes:
         renderer: ``splat`` (sampled op), ``dense`` (exact oracle) or ``truncated`` (3σ baseline).
@@ -41,18 +45,18 @@ class RenderConfig:
     """
 
     renderer: Literal["splat", "dense", "truncated"] = "splat"
-    samples: int = 40
-    eps: float = 0.01
-    estimator: Literal["ht", "ht-pips", "paper", "sampled"] = "ht"
-    stratified: bool = False
-    composite: Literal["alpha", "additive"] = "alpha"
+    samples: int = SplatSettings.samples
+    eps: float = SplatSettings.eps
+    estimator: Literal["ht", "ht-pips", "paper", "sampled"] = SplatSettings.estimator
+    stratified: bool = SplatSettings.stratified
+    composite: Literal["alpha", "additive"] = SplatSettings.composite
     background: list[float] | None = None
-    near: float = 0.01
-    far: float = 1e10
-    lowpass: float = 1.0
-    deterministic: bool = True
-    hermite_order: int = 8
-    hermite_tol: float = 1e-3
+    near: float = SplatSettings.near
+    far: float = SplatSettings.far
+    lowpass: float = SplatSettings.lowpass
+    deterministic: bool = SplatSettings.deterministic
+    hermite_order: int = SplatSettings.hermite_order
+    hermite_tol: float = SplatSettings.hermite_tol
     cutoff: float = 3.0
     tile: int = 16
 
@@ -62,6 +66,18 @@ class RenderConfig:
         require(self.far > self.near, "far", f"a value > near ({self.near})", self.far)
         require(self.renderer != "truncated" or self.composite == "alpha", "composite",
                 "alpha with renderer truncated", self.composite)
+        if self.renderer == "splat":  # the op's own checks (e.g. hermite_order <= 16), at construction
+            try:
+                self.op_settings()
+            except (TypeError, ValueError) as exc:  # "<name>: expected ..., got ...": a config field error
+                key, _, rest = str(exc).partition(": ")
+                expected = rest.removeprefix("expected ").rsplit(", got ", 1)[0]
+                raise FieldError(key, expected, getattr(self, key, None)) from None
+
+    def op_settings(self, estimator: str | None = None) -> SplatSettings:
+        """The sampled op's settings of this config (``estimator`` overrides ``self.estimator``)."""
+        settings = SplatSettings.of(self)
+        return settings if estimator is None else dataclasses.replace(settings, estimator=estimator)
 
 
 def background_of(cfg: RenderConfig, channels: int, like: torch.Tensor) -> torch.Tensor | None:
@@ -98,11 +114,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
         background = background_of(cfg, features.shape[-1], means)
     common = dict(background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass)
     if cfg.renderer == "splat":
-        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height,
-                     samples=cfg.samples, eps=cfg.eps, estimator=estimator or cfg.estimator,
-                     composite=cfg.composite, seed=int(seed), hermite_order=cfg.hermite_order,
-                     hermite_tol=cfg.hermite_tol, deterministic=cfg.deterministic, stratified=cfg.stratified,
-                     **common)
+        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, seed=int(seed),
+                     background=background, **cfg.op_settings(estimator).kwargs())
     if cfg.renderer == "dense":
         return splat_dense(means, normals, scales, opacities, features, viewmats, Ks, width, height,
                            composite=cfg.composite, **common)

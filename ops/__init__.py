@@ -7,6 +7,7 @@ Public API:
     splat(...)          sampled EWA surface splatting (C++/OpenMP on CPU, CUDA on GPU)
     splat_dense(...)    exact dense oracle (pure PyTorch)
     Splatter            nn.Module holding the op's settings
+    SplatSettings       the op's settings as one value (Splatter's, and the render gateway's)
     sample(...)         per-pixel SPS sample (indices, inclusion probabilities, Λ̂)
     composite_sample(...) compositor of a given per-pixel sample (differentiable, estimator backward)
     diagnostics         Monte-Carlo bias/variance of the estimators against the dense oracle
@@ -15,7 +16,8 @@ Public API:
 from .functional import composite_sample, sample, splat
 from .module import Splatter
 from .output import SplatOutput
+from .settings import SplatSettings
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
 
-__all__ = ["Splatter", "splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]
+__all__ = ["Splatter", "SplatSettings", "splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]

@@ -49,7 +49,8 @@ def _load(kind: str) -> ModuleType:
     tag = f"-DNSPLAT_SOURCE_HASH={source_hash()}"
 
     if kind == "cpu":
-        sources = [str(CSRC / "cpu" / "splat_cpu.cpp"), str(CSRC / "cpu" / "scatter_cpu.cpp")]
+        sources = [str(CSRC / "cpu" / "bindings.cpp"), str(CSRC / "cpu" / "splat_cpu.cpp"),
+                   str(CSRC / "cpu" / "scatter_cpu.cpp")]
         flags = dict(extra_cflags=["-O3", "-fopenmp", "-std=c++17", tag], extra_ldflags=["-fopenmp"])
     else:
         sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]

@@ -4,22 +4,53 @@ Stages (each usable on its own, PyTorch3D style):
     :func:`nsplat.ops.project`  differentiable EWA projection (PyTorch autograd)
     :func:`sample`              per-pixel sequential Poisson sample over the radix tree (native, no grad)
     :func:`composite_sample`    compositing of a given sample with the estimator's backward (native)
+
+Each validates its arguments (``ops/validation.py``) and then calls the custom ops of
+``ops/library.py`` (``nsplat::sample``, ``nsplat::composite_forward``), which dispatch on the device and
+carry the autograd, fake kernels and ``torch.compile`` support. Inside an autocast region the stages run
+in float32 (docs/op.md §7).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
-from .build import backend
+from .library import _entries_by_point, _entries_by_point_sorted  # noqa: F401 - re-exported (tests, benchmarks)
+from .library import composite_forward_op, sample_op
 from .output import SplatOutput
 from .projection import Projected, project
 from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_composite_call, check_deterministic,
                          check_geometry, check_sample_call, check_sampling, check_settings, inclusion_for,
                          native_estimator)
 
+_PROJECTED_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
+_LOW_PRECISION = (torch.float16, torch.bfloat16)
 
-def _native_inputs(proj: Projected) -> list[torch.Tensor]:
-    return [t.contiguous() for t in (proj.means2d, proj.conics, proj.amps, proj.normals_cam,
-                                     proj.plane_offsets, proj.depths)]
+
+def _autocast_on(t: object) -> bool:
+    """Whether an autocast region is active for the device type of tensor ``t`` (the op then runs in
+    float32: docs/op.md "Using the op in other networks"); False for a non-tensor (validation reports it)."""
+    return isinstance(t, torch.Tensor) and torch.is_autocast_enabled(t.device.type)
+
+
+def _to_float32(t: object) -> object:
+    """``t`` in float32 when it is a float16/bfloat16 tensor (as autocast produces), else ``t`` itself."""
+    return t.float() if isinstance(t, torch.Tensor) and t.dtype in _LOW_PRECISION else t
+
+
+def _projected_float32(proj: Projected) -> Projected:
+    """``proj`` with its float16/bfloat16 fields in float32 (a projection run under autocast)."""
+    if not isinstance(proj, Projected):
+        return proj
+    return Projected(**{f.name: _to_float32(getattr(proj, f.name)) for f in dataclasses.fields(proj)})
+
+
+def _seed_tensor(seed: int | torch.Tensor) -> torch.Tensor:
+    """The seed as the 0-dim int64 tensor the custom op takes (see :func:`nsplat.ops.library.sample_op`)."""
+    if isinstance(seed, torch.Tensor):
+        return seed.detach().to(torch.int64)
+    return torch.tensor(seed, dtype=torch.int64)
 
 
 @torch.no_grad()
@@ -32,8 +63,8 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
         proj: projected surfels of ``B`` cameras (:func:`nsplat.ops.project`).
         Ks: ``[B,3,3]`` intrinsics (pixel rays for per-pixel depth ordering).
         samples: sample size ``m`` per pixel. eps: bound on the probability that a pixel's sample
-            differs from the exact SPS sample. seed: RNG seed (``u`` is a hash of seed, camera, pixel,
-            point). hermite_order: maximum Hermite order per dimension (0 disables expansions).
+            differs from the exact SPS sample. seed: RNG seed, an int or a 0-dim integer tensor (``u`` is a hash of seed,
+            camera, pixel, point). hermite_order: maximum Hermite order per dimension (0 disables expansions).
             hermite_tol: relative truncation bound a node's expansion must meet.
             inclusion: which π to return. "threshold" (default): ``π_k = min(1, λ_k·ξ_(m+1))`` with
             ``ξ_(m+1)`` the pixel's (m+1)-th smallest key ``u/λ`` — the exact probability of k's inclusion
@@ -49,81 +80,18 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
         ``indices [B,H,W,m]`` int32 (front to back, -1 empty), ``probs [B,H,W,m]`` (π, 0 empty),
         ``total [B,H,W,1]`` (Λ̂; 0 below the floor), ``work [B,H,W,1]`` int32 exact kernel evaluations.
     """
+    if _autocast_on(Ks):
+        with torch.autocast(Ks.device.type, enabled=False):
+            return sample(_projected_float32(proj), _to_float32(Ks), width, height, samples=samples, eps=eps,
+                          seed=seed, hermite_order=hermite_order, hermite_tol=hermite_tol, inclusion=inclusion,
+                          stratified=stratified)
     if inclusion not in INCLUSIONS:
         raise ValueError(f"inclusion: expected one of {INCLUSIONS}, got {inclusion!r}")
     check_sample_call(proj, Ks, width, height, samples=samples, eps=eps, seed=seed, hermite_order=hermite_order,
                       hermite_tol=hermite_tol, stratified=stratified)
-    mu, con, amp, nrm, off, zc = _native_inputs(proj)
-    sig2 = proj.sigma2.contiguous()
-    return tuple(backend(mu.device).sample(mu, con, amp, sig2, nrm, off, zc, Ks.detach().contiguous(), width,
-                                           height, samples, float(eps), seed, hermite_order, float(hermite_tol),
-                                           INCLUSIONS.index(inclusion), bool(stratified)))
-
-
-class _Composite(torch.autograd.Function):
-    """Compositing of a fixed sample. Backward (deterministic): pass 1 per pixel, pass 2 per point in
-    a fixed (point, camera, slot) order. Non-deterministic (CPU only): one pass per pixel scattering
-    into the per-point buffers with atomics (``csrc/cpu/scatter_cpu.cpp``)."""
-
-    @staticmethod
-    def forward(ctx, mode: int, estimator: int, deterministic: bool, Ks: torch.Tensor, indices: torch.Tensor,
-                probs: torch.Tensor, mu, con, amp, nrm, off, zc, feat, bg):  # noqa: ANN001 - autograd signature
-        ops = backend(mu.device)
-        args = [t.contiguous() for t in (mu, con, amp, nrm, off, zc)]
-        Kc = Ks.detach().contiguous()
-        image, alpha, depth = ops.composite_forward(*args, Kc, feat.contiguous(), bg.contiguous(), indices, probs, mode)
-        ctx.save_for_backward(*args, Kc, feat, bg, indices, probs)
-        ctx.mode, ctx.estimator, ctx.deterministic = mode, estimator, deterministic
-        return image, alpha, depth
-
-    @staticmethod
-    def backward(ctx, g_img, g_alpha, g_depth):  # noqa: ANN001
-        mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs = ctx.saved_tensors
-        ops = backend(mu.device)
-        B, H, W, m = indices.shape
-        N = amp.shape[1]
-        g_img = torch.zeros(B, H, W, feat.shape[1], dtype=mu.dtype, device=mu.device) if g_img is None else g_img
-        g_alpha = torch.zeros(B, H, W, 1, dtype=mu.dtype, device=mu.device) if g_alpha is None else g_alpha
-        g_depth = torch.zeros(B, H, W, 1, dtype=mu.dtype, device=mu.device) if g_depth is None else g_depth
-        g_img, g_alpha, g_depth = g_img.contiguous(), g_alpha.contiguous(), g_depth.contiguous()
-        params = (mu, con, amp, nrm, off, zc)
-        if not ctx.deterministic and mu.device.type == "cpu":
-            *grads, bgw = ops.composite_backward_scatter(*params, Ks, feat.contiguous(), bg.contiguous(), indices,
-                                                         probs, ctx.mode, ctx.estimator, g_img, g_alpha, g_depth)
-            return (None, None, None, None, None, None, *grads, (bgw * g_img).sum(dim=(0, 1, 2)))
-        dalpha, wf, bgw = ops.composite_backward_pixels(*params, Ks, feat.contiguous(), bg.contiguous(), indices,
-                                                        probs, ctx.mode, ctx.estimator, g_img, g_alpha, g_depth)
-        entries, seg = _entries_by_point(indices, N)
-        grads = ops.composite_backward_points(*params, Ks, entries, seg, dalpha, wf, g_img, g_depth, W, H,
-                                              ctx.estimator)
-        g_bg = (bgw * g_img).sum(dim=(0, 1, 2))
-        return (None, None, None, None, None, None, *grads, g_bg)
-
-
-def _entries_by_point(indices: torch.Tensor, N: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat slot ids of the filled slots of ``indices [B,H,W,m]`` grouped by point, keeping their
-    (camera, pixel, slot) order within a point, and per-point segment offsets ``seg [N+1]`` (int64).
-
-    A backend with a native stable counting sort (the CPU one) uses it: 8 bytes per filled slot + 8 per
-    point. Otherwise (CUDA): a stable device sort of the int32 point ids, :func:`_entries_by_point_sorted`
-    (positions, ids, sort indices and the gathered order: ≈ 28 bytes per filled slot at the peak)."""
-    native = getattr(backend(indices.device), "entries_by_point", None)
-    if native is not None:
-        entries, seg = native(indices.contiguous(), N)
-        return entries, seg
-    return _entries_by_point_sorted(indices, N)
-
-
-def _entries_by_point_sorted(indices: torch.Tensor, N: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`_entries_by_point` by a stable device sort (any device; the reference for the native one)."""
-    flat = indices.reshape(-1)
-    pos = torch.nonzero(flat >= 0).squeeze(1)
-    keys, order = torch.sort(flat.index_select(0, pos), stable=True)
-    entries = pos.index_select(0, order)
-    del pos, order
-    seg = torch.zeros(N + 1, dtype=torch.long, device=indices.device)
-    seg[1:] = torch.cumsum(torch.bincount(keys, minlength=N), 0)
-    return entries, seg
+    fields = (proj.means2d, proj.conics, proj.amps, proj.sigma2, proj.normals_cam, proj.plane_offsets, proj.depths)
+    return sample_op(*(t.detach() for t in fields), Ks.detach(), _seed_tensor(seed), width, height, samples,
+                     float(eps), hermite_order, float(hermite_tol), INCLUSIONS.index(inclusion), bool(stratified))
 
 
 def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, indices: torch.Tensor,
@@ -151,6 +119,11 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     Returns:
         ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``.
     """
+    if _autocast_on(Ks):
+        with torch.autocast(Ks.device.type, enabled=False):
+            return composite_sample(_projected_float32(proj), _to_float32(features), _to_float32(Ks), indices,
+                                    _to_float32(probs), background=_to_float32(background), composite=composite,
+                                    estimator=estimator, deterministic=deterministic)
     check_composite_call(proj, features, Ks, indices, probs, background, composite, estimator, deterministic)
     if composite not in COMPOSITES:
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
@@ -163,10 +136,11 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {proj.means2d.dtype}, "
                          f"got {list(probs.shape)} {probs.dtype}")
     bg = background if background is not None else features.new_zeros(features.shape[1])
-    return _Composite.apply(COMPOSITES.index(composite), native_estimator(estimator), deterministic, Ks,
-                            indices.contiguous(),
-                            probs.contiguous(), proj.means2d, proj.conics, proj.amps, proj.normals_cam,
-                            proj.plane_offsets, proj.depths, features, bg)
+    image, alpha, depth = composite_forward_op(proj.means2d, proj.conics, proj.amps, proj.normals_cam,
+                                               proj.plane_offsets, proj.depths, Ks.detach(), features, bg,
+                                               indices, probs.detach(), COMPOSITES.index(composite),
+                                               native_estimator(estimator), deterministic)
+    return image, alpha, depth
 
 
 def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -202,7 +176,8 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
             compositing no estimator is unbiased (the transmittance is a product over the sample).
         composite: "alpha" (front-to-back blending) or "additive" (HT-weighted sum, no occlusion).
         background: ``[C]`` differentiable background (zeros if None). near, far: clipping on the centre
-            depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed.
+            depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed (an int, or a 0-dim
+            integer tensor: a seed that changes every step without recompiling under ``torch.compile``).
         hermite_order, hermite_tol: tree expansion order cap and relative truncation tolerance.
         deterministic: True (default) gives run-to-run and thread-count independent, bitwise identical
             gradients (fixed-order per-point gather). False selects the faster single-pass CPU backward
@@ -214,6 +189,13 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
         :class:`SplatOutput`: ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``,
         ``total [B,H,W,1]`` (Λ̂), ``indices [B,H,W,m]`` int32, ``probs [B,H,W,m]``, ``work [B,H,W,1]``.
     """
+    if _autocast_on(means):
+        with torch.autocast(means.device.type, enabled=False):
+            f32 = [_to_float32(t) for t in (means, normals, scales, opacities, features, viewmats, Ks)]
+            return splat(*f32, width, height, samples=samples, eps=eps, estimator=estimator, composite=composite,
+                         background=_to_float32(background), near=near, far=far, lowpass=lowpass, seed=seed,
+                         hermite_order=hermite_order, hermite_tol=hermite_tol, deterministic=deterministic,
+                         stratified=stratified)
     N, C, B = check_geometry(means, normals, scales, opacities, features, viewmats, Ks)
     check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
                    background=background, C=C, dtype=means.dtype, device=means.device)

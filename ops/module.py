@@ -1,4 +1,4 @@
-"""``nn.Module`` wrapper of :func:`nsplat.ops.splat` holding the op's settings."""
+"""``nn.Module`` wrapper of :func:`nsplat.ops.splat` holding the op's settings (:class:`SplatSettings`)."""
 from __future__ import annotations
 
 import torch
@@ -6,13 +6,15 @@ from torch import nn
 
 from .functional import splat
 from .output import SplatOutput
-from .validation import COMPOSITES, check_deterministic, check_range, check_sampling
+from .settings import SplatSettings
+from .validation import check_sampling
 
 
 class Splatter(nn.Module):
     """Sampled EWA surface splatting as a layer.
 
-    Holds the sampling/compositing settings; every call without an explicit ``seed`` uses a fresh
+    Holds the op's settings as one :class:`SplatSettings` (``splatter.settings``; each also reads as an
+    attribute, ``splatter.samples``); every call without an explicit ``seed`` uses a fresh
     seed (``base_seed + number of previous calls``) so that successive training steps draw
     independent samples while a run stays reproducible. The call counter is saved in the state dict.
 
@@ -25,34 +27,41 @@ class Splatter(nn.Module):
     def __init__(self, samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
                  near: float = 0.01, far: float = 1e10, lowpass: float = 1.0, base_seed: int = 0,
                  hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
-                 stratified: bool = False) -> None:
+                 stratified: bool = False, *, settings: SplatSettings | None = None) -> None:
+        """The settings are the keyword arguments, or ``settings`` (then the other op arguments are ignored)."""
         super().__init__()
-        check_sampling(samples=samples, eps=eps, estimator=estimator, seed=base_seed, hermite_order=hermite_order,
-                       hermite_tol=hermite_tol, stratified=stratified)  # fail at construction, not at the first forward
-        check_range(near=near, far=far, lowpass=lowpass)
-        if composite not in COMPOSITES:
-            raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
-        check_deterministic(deterministic)
-        self.samples, self.eps, self.estimator, self.composite = samples, eps, estimator, composite
-        self.near, self.far, self.lowpass, self.base_seed = near, far, lowpass, base_seed
-        self.hermite_order, self.hermite_tol = hermite_order, hermite_tol
-        self.deterministic = deterministic  # False: faster atomic-scatter CPU backward (see splat)
-        self.stratified = stratified  # stratified uniforms across pixels (see splat)
+        if settings is None:  # validated at construction, not at the first forward
+            settings = SplatSettings(samples=samples, eps=eps, estimator=estimator, composite=composite, near=near,
+                                     far=far, lowpass=lowpass, hermite_order=hermite_order, hermite_tol=hermite_tol,
+                                     deterministic=deterministic, stratified=stratified)
+        elif not isinstance(settings, SplatSettings):
+            raise TypeError(f"settings: expected a SplatSettings, got {type(settings).__name__}")
+        check_sampling(samples=settings.samples, eps=settings.eps, estimator=settings.estimator, seed=base_seed,
+                       hermite_order=settings.hermite_order, hermite_tol=settings.hermite_tol)
+        self.settings = settings
+        self.base_seed = base_seed
         self.register_buffer("calls", torch.zeros((), dtype=torch.long), persistent=True)
 
     def forward(self, means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                 features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                 background: torch.Tensor | None = None, seed: int | None = None) -> SplatOutput:
         """Render ``[B,H,W,C]`` feature images; shapes as in :func:`nsplat.ops.splat`."""
-        if seed is None:
-            seed = self.base_seed + int(self.calls)
+        if seed is None:  # a tensor seed: no .item(), so torch.compile traces this without a graph break
+            seed = self.calls + self.base_seed
             self.calls += 1
-        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, samples=self.samples,
-                     eps=self.eps, estimator=self.estimator, composite=self.composite, background=background,
-                     near=self.near, far=self.far, lowpass=self.lowpass, seed=seed,
-                     hermite_order=self.hermite_order, hermite_tol=self.hermite_tol,
-                     deterministic=self.deterministic, stratified=self.stratified)
+        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, background=background,
+                     seed=seed, **self.settings.kwargs())
 
     def extra_repr(self) -> str:
         return (f"samples={self.samples}, eps={self.eps}, estimator={self.estimator!r}, "
                 f"composite={self.composite!r}, lowpass={self.lowpass}")
+
+
+def _setting(name: str) -> property:
+    return property(lambda self: getattr(self.settings, name),
+                    doc=f"``settings.{name}`` (read-only; replace ``settings`` to change it).")
+
+
+for _name in SplatSettings.names():  # splatter.samples, splatter.eps, ... read the settings
+    setattr(Splatter, _name, _setting(_name))
+del _name

@@ -3,6 +3,12 @@
 Every failure raises ``TypeError`` (wrong Python/tensor type or dtype) or ``ValueError`` (wrong
 shape, device, range or non-finite values) whose message starts with the argument's name and states
 what was expected.
+
+Under ``torch.compile`` (:func:`values_checked` is False) the checks of types, dtypes, shapes, devices
+and Python settings run as always (they are static while tracing), but the data-dependent checks of
+tensor *values* (NaN/Inf, signs and ranges, rigid viewmats, projection overflow, index and probability
+ranges) are skipped: they would force a graph break on every call. Run a compiled model's inputs through
+the op once eagerly to check them (docs/op.md "Using the op in other networks").
 """
 from __future__ import annotations
 
@@ -28,6 +34,12 @@ RIGID_TOL = {torch.float32: 1e-4, torch.float64: 1e-5}
 TINY_DET_F32 = 1e-20
 
 
+def values_checked() -> bool:
+    """Whether the data-dependent value checks run: always in eager mode, never while ``torch.compile``
+    traces (module docstring)."""
+    return not torch.compiler.is_compiling()
+
+
 class AllocationError(ValueError):
     """The outputs or workspace of a call cannot fit in this machine's memory (raised before allocating)."""
 
@@ -47,7 +59,7 @@ def _shape(name: str, t: torch.Tensor, expected: tuple[object, ...], text: str) 
 
 
 def _finite(name: str, t: torch.Tensor) -> None:
-    if t.numel() and not bool(torch.isfinite(t).all()):
+    if values_checked() and t.numel() and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name}: contains NaN or Inf")
 
 
@@ -100,6 +112,14 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     _shape("Ks", Ks, (B, 3, 3), f"[B, 3, 3] with B={B}")
     for n, t in zip(names, tensors):
         _finite(n, t)
+    if values_checked():
+        _check_geometry_values(N, normals, scales, opacities, viewmats, Ks, dtype, device)
+    return N, (features.shape[1] if features is not None else 0), B
+
+
+def _check_geometry_values(N: int, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                           viewmats: torch.Tensor, Ks: torch.Tensor, dtype: torch.dtype, device: torch.device) -> None:
+    """The data-dependent checks of :func:`check_geometry` (eager only, see :func:`values_checked`)."""
     if N:
         if bool((normals.norm(dim=-1) == 0).any()):
             raise ValueError("normals: every normal must have non-zero length")
@@ -117,7 +137,6 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     if bool(((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any()):
         raise ValueError("Ks: expected focal lengths fx = K[0,0] > 0 and fy = K[1,1] > 0")
     check_rigid(viewmats)
-    return N, (features.shape[1] if features is not None else 0), B
 
 
 def check_rigid(viewmats: torch.Tensor) -> None:
@@ -187,9 +206,15 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol,
         raise ValueError(f"eps: expected a probability in (0, 1], got {eps}")
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
-    _int("seed", seed, 0)
-    if int(seed) >= 2**63:
-        raise ValueError(f"seed: expected a value < 2**63, got {seed}")
+    if isinstance(seed, torch.Tensor):  # a per-step seed as a graph input (Splatter); range checked eagerly
+        if seed.dim() != 0 or seed.dtype.is_floating_point or seed.dtype.is_complex or seed.dtype == torch.bool:
+            raise TypeError(f"seed: expected an int or a 0-dim integer tensor, got {seed.dtype} {list(seed.shape)}")
+        if values_checked() and not 0 <= int(seed) < 2**63:
+            raise ValueError(f"seed: expected a value in [0, 2**63), got {int(seed)}")
+    else:
+        _int("seed", seed, 0)
+        if int(seed) >= 2**63:
+            raise ValueError(f"seed: expected a value < 2**63, got {seed}")
     order = _int("hermite_order", hermite_order, 0)
     if order > 16:
         raise ValueError(f"hermite_order: expected an int in [0, 16], got {hermite_order}")
@@ -204,14 +229,22 @@ def check_deterministic(deterministic) -> None:
         raise TypeError(f"deterministic: expected a bool, got {type(deterministic).__name__}")
 
 
-def memory_limit(device: torch.device) -> int:
-    """Bytes a single call may at most allocate: the device's total memory (physical RAM on CPU)."""
-    if device.type == "cuda":
-        return int(torch.cuda.get_device_properties(device).total_memory)
+def _physical_memory() -> int:
     try:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
         return 2**40
+
+
+#: Physical RAM in bytes, read once at import (a constant while torch.compile traces; no os call in the graph).
+PHYSICAL_MEMORY = _physical_memory()
+
+
+def memory_limit(device: torch.device) -> int:
+    """Bytes a single call may at most allocate: the device's total memory (physical RAM on CPU)."""
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
+    return PHYSICAL_MEMORY
 
 
 def check_allocation(*, B: int, N: int, C: int, width: int, height: int, samples: int, dtype: torch.dtype,
@@ -262,7 +295,7 @@ def check_projected(proj, Ks: torch.Tensor) -> tuple[int, int]:
         _finite(f"proj.{name}", t)
     if tuple(proj.valid.shape) != (B, N):
         raise ValueError(f"proj.valid: expected shape {[B, N]}, got {list(proj.valid.shape)}")
-    if bool((proj.amps < 0).any()) or bool((proj.sigma2 < 0).any()):
+    if values_checked() and (bool((proj.amps < 0).any()) or bool((proj.sigma2 < 0).any())):
         raise ValueError("proj.amps, proj.sigma2: expected values >= 0")
     _tensor("Ks", Ks)
     if Ks.device != amps.device:
@@ -309,7 +342,7 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
     if indices.shape[0] != B or min(indices.shape[1:]) < 1:
         raise ValueError(f"indices: expected shape [B,H,W,m] with B={B} (the cameras of proj) and H, W, m >= 1, "
                          f"got {list(indices.shape)}")
-    if indices.numel() and bool(((indices < -1) | (indices >= N)).any()):
+    if values_checked() and indices.numel() and bool(((indices < -1) | (indices >= N)).any()):
         raise ValueError(f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} points), got "
                          f"[{int(indices.min())}, {int(indices.max())}]")
     p = _tensor("probs", probs)
@@ -317,8 +350,8 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {dtype} on {device}, "
                          f"got {list(p.shape)} {p.dtype} on {p.device}")
     _finite("probs", p)
-    filled = indices >= 0
-    if bool(((p <= 0) & filled).any()) or bool((p > 1).any()) or bool((p < 0).any()):
+    if values_checked() and (bool(((p <= 0) & (indices >= 0)).any()) or bool((p > 1).any())
+                             or bool((p < 0).any())):
         raise ValueError("probs: expected inclusion probabilities in (0, 1] for filled slots and in [0, 1] for "
                          "empty ones")
     if background is not None:
@@ -341,6 +374,8 @@ def check_projection_numerics(*, in_range: torch.Tensor, detJ: torch.Tensor, det
     * float32 with ``lowpass < 1e-12``: a visible splat with ``0 < det Σ < 1e-20`` px⁴ (σ ≲ 10⁻⁵ px) has
       NaN/Inf gradients; raised only when the projection is differentiated.
     """
+    if not values_checked():
+        return
     live = in_range & (detJ != 0)
     huge = live & ~(torch.isfinite(det) & torch.isfinite(detJ) & torch.isfinite(means2d).all(-1))
     if bool(huge.any()):

@@ -297,7 +297,9 @@ def test_scatter_backward_matches_deterministic(dtype, estimator, composite):
 @pytest.mark.parametrize("deterministic", [True, False])
 def test_flag_selects_the_backward_path(deterministic, monkeypatch):
     """deterministic=True runs the two-pass gather and never the scatter; False the reverse (CPU)."""
-    import nsplat.ops.functional as fn
+    import dataclasses
+
+    import nsplat.ops.library as lib
 
     calls: list[str] = []
 
@@ -309,8 +311,8 @@ def test_flag_selects_the_backward_path(deterministic, monkeypatch):
             calls.append(name)
             return getattr(self.mod, name)
 
-    real = fn.backend
-    monkeypatch.setattr(fn, "backend", lambda device: Spy(real(device)))
+    real = lib.native
+    monkeypatch.setattr(lib, "native", lambda kind: dataclasses.replace(real(kind), module=Spy(real(kind).module)))
     _grads(deterministic, 1, N=50, W=8, H=6, B=1)
     assert ("composite_backward_scatter" in calls) != deterministic
     assert ("composite_backward_points" in calls) == deterministic

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import nsplat.ops.functional as functional
+import nsplat.ops.library as library
 from nsplat.ops import splat, splat_dense
 from tests.conftest import make_cameras, make_scene
 
@@ -14,7 +14,7 @@ def no_native(monkeypatch):
     def fail(*_a, **_k):
         raise AssertionError("native code ran before validation")
 
-    monkeypatch.setattr(functional, "backend", fail)
+    monkeypatch.setattr(library, "native", fail)  # every custom op kernel gets its module from here
 
 
 def _good():

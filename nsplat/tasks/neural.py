@@ -257,10 +257,14 @@ def eval_seed(cfg: Config) -> int:
 
 
 @torch.no_grad()
-def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode)."""
-    was = model.training
+def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4,
+                 render_cfg: gateway.RenderConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode), with the
+    render settings ``render_cfg`` (default: the model's, i.e. training's; see ``Config.eval_render``)."""
+    was, trained_cfg = model.training, model.render_cfg
     model.eval()
+    if render_cfg is not None:
+        model.render_cfg = render_cfg
     rgbs, conds = [], []
     try:
         for s in range(0, len(views), batch):
@@ -269,6 +273,7 @@ def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int
             conds.append(cond)
     finally:
         model.train(was)
+        model.render_cfg = trained_cfg
     return torch.cat(rgbs).clamp(0, 1), torch.cat(conds)
 
 
@@ -293,7 +298,7 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
         out = {}
         for name, sub in (("train", tr_sub), ("val", val_sub)):
             if sub is not None:
-                rgb, _ = render_split(model, sub, seed=eval_seed(cfg))
+                rgb, _ = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render())
                 rec[f"{name}_psnr"] = out[f"psnr/{name}"] = float(psnr(rgb, sub.images).mean())
         t.extra["history"].append(rec)
         write_json(ctx.run_dir / "history.json", {"history": t.extra["history"],
@@ -302,7 +307,7 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
 
     def images(done: int, writer: Any) -> None:
         sub = (val_sub if val_sub is not None else tr_sub).spread(2)
-        rgb, cond = render_split(model, sub, seed=eval_seed(cfg))
+        rgb, cond = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render())
         writer.add_images("images/features", _preview(cond), done)
         writer.add_images("images/render", _nchw(rgb), done)
         writer.add_images("images/gt", _nchw(sub.images), done)

@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from typing import Any, Literal
 
-from nsplat.config import ConfigError, require_fields
+from nsplat.config import ConfigError, from_dict, require_fields, to_dict
 from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig
 from nsplat.render import RenderConfig
@@ -219,6 +219,9 @@ class EvalConfig:
         split: held-out split evaluated at the end of training (and by ``eval`` by default).
         images: write rendered/GT PNGs. orbit_frames, fps: the ``render`` command's orbit video.
         val_views: views per split in the training-time validation (``log.validate``; ``history.json``).
+        render: overrides of the top-level ``render`` section for every evaluation render (held-out
+            metrics, training-time validation, the orbit video), e.g. ``eval.render: {samples: 80}``;
+            empty (default): evaluate with the training settings. See :meth:`Config.eval_render`.
     """
 
     split: Literal["train", "val", "test"] = "test"
@@ -226,6 +229,7 @@ class EvalConfig:
     images: bool = True
     orbit_frames: int = 60
     fps: int = 20
+    render: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -246,5 +250,12 @@ class Config:
             raise ConfigError(f"task: expected 'neural', got {self.task!r}")
         if self.seed < 0:
             raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        self.eval_render()  # unknown or invalid eval.render keys fail at load
         if "opacities" in self.neural.learn and self.geometry.opacity is not None:
             raise ConfigError("neural.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")
+
+    def eval_render(self) -> RenderConfig:
+        """The render settings of evaluation: ``render`` with the ``eval.render`` overrides applied."""
+        if not self.eval.render:
+            return self.render
+        return from_dict(RenderConfig, {**to_dict(self.render), **self.eval.render}, prefix="eval.render.")

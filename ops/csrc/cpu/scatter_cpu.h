@@ -1,5 +1,4 @@
-// Non-deterministic single-pass CPU backward of the compositor (scatter_cpu.cpp), registered in the
-// PYBIND11_MODULE block of splat_cpu.cpp.
+// Non-deterministic single-pass CPU backward of the compositor (scatter_cpu.cpp), bound in bindings.cpp.
 #pragma once
 #include <torch/extension.h>
 

@@ -8,6 +8,7 @@
 #include <omp.h>
 #endif
 
+#include "../api.h"  // the declarations this file defines; bound in bindings.cpp
 #include "../core/composite.h"
 #include "../core/sps.h"
 #include "../core/tree_build.h"
@@ -391,15 +392,3 @@ std::vector<at::Tensor> entries_by_point(at::Tensor indices, int64_t num_points)
 }
 
 }  // namespace nsplat
-
-#include "scatter_cpu.h"  // composite_backward_scatter (non-deterministic backward)
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("sample", &nsplat::sample, "Per-pixel SPS sample over the radix tree (CPU)");
-  m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
-  m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
-  m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
-  m.def("entries_by_point", &nsplat::entries_by_point, "Filled slots grouped by point, stable counting sort (CPU)");
-  m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
-        "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");
-}

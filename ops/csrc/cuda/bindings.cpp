@@ -1,8 +1,10 @@
 // Python bindings of the CUDA backend: argument checks, then the launchers in splat_cuda.cu.
 //
-// The module exposes the CPU module's four functions with the same signatures and semantics
-// (ops/csrc/cpu/splat_cpu.cpp); ops/build.py picks it when the tensors are on a CUDA device.
+// The module exposes the four functions of the shared API (../api.h) that the CPU module also exposes
+// (cpu/bindings.cpp), with the same signatures and semantics; ops/library.py's CUDA kernels call it.
 #include <torch/extension.h>
+
+#include "../api.h"
 
 #include <limits>
 #include <vector>

@@ -1,0 +1,42 @@
+// The native API both backends export, declared once: the CPU backend defines these functions in
+// cpu/splat_cpu.cpp, the CUDA backend in cuda/bindings.cpp (checks, then the launchers in splat_cuda.cu).
+// Each backend's bindings.cpp binds them under the same names; ops/library.py calls them through the
+// registered custom ops. Tensors are contiguous and of one float dtype (float32/float64) per call except
+// Ks [B,3,3] (made double inside), indices int32, entries/seg int64.
+#pragma once
+#include <torch/extension.h>
+
+#include <vector>
+
+namespace nsplat {
+
+// Per-pixel SPS sample: {indices [B,H,W,m] int32, probs [B,H,W,m], total [B,H,W,1], work [B,H,W,1] int32}.
+std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
+                               at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
+                               int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                               int64_t inclusion, bool stratified);
+
+// Compositing of a given sample: {image [B,H,W,C], alpha [B,H,W,1], depth [B,H,W,1]}.
+std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm, at::Tensor off,
+                                          at::Tensor zc, at::Tensor Ks, at::Tensor feat, at::Tensor bg,
+                                          at::Tensor indices, at::Tensor probs, int64_t mode);
+
+// Backward pass 1, per pixel: {dalpha [B,H,W,m], wf [B,H,W,m], bgw [B,H,W,1]}.
+std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
+                                                  at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor feat,
+                                                  at::Tensor bg, at::Tensor indices, at::Tensor probs, int64_t mode,
+                                                  int64_t estimator, at::Tensor g_img, at::Tensor g_alpha,
+                                                  at::Tensor g_depth);
+
+// Backward pass 2, per point in the (point, camera, slot) order of entries/seg:
+// {g_mu [B,N,2], g_con [B,N,3], g_amp [B,N], g_nrm [B,N,3], g_off [B,N], g_zc [B,N], g_feat [N,C]}.
+std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
+                                                  at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor entries,
+                                                  at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
+                                                  at::Tensor g_depth, int64_t width, int64_t height,
+                                                  int64_t estimator);
+
+// CPU only (cpu/splat_cpu.cpp): filled slots grouped by point, stable counting sort: {entries [E], seg [N+1]}.
+std::vector<at::Tensor> entries_by_point(at::Tensor indices, int64_t num_points);
+
+}  // namespace nsplat

@@ -1,0 +1,16 @@
+// Python bindings of the CPU backend (the CUDA backend's are cuda/bindings.cpp): the shared API of
+// ../api.h, defined in splat_cpu.cpp, plus the CPU-only counting sort and atomic-scatter backward.
+#include <torch/extension.h>
+
+#include "../api.h"
+#include "scatter_cpu.h"
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("sample", &nsplat::sample, "Per-pixel SPS sample over the radix tree (CPU)");
+  m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
+  m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
+  m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
+  m.def("entries_by_point", &nsplat::entries_by_point, "Filled slots grouped by point, stable counting sort (CPU)");
+  m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
+        "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");
+}

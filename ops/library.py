@@ -1,0 +1,210 @@
+"""The native stages registered as PyTorch custom ops (``torch.library``), namespace ``nsplat``.
+
+Registered ops (schemas inferred from the type hints below; CPU and CUDA kernels, fake kernels for
+tracing, autograd for the compositor):
+
+    nsplat::sample              per-pixel SPS sample (no gradient)
+    nsplat::composite_forward   compositing of a given sample; differentiable (autograd registered)
+    nsplat::composite_backward  the estimator's backward of ``composite_forward`` (its own gradient is an error)
+
+Because these are custom ops, ``torch.compile`` traces a model containing :class:`nsplat.ops.Splatter`
+without graph breaks (the fake kernels give the output shapes), and autograd / AOTAutograd see one node
+per stage. The kernels for a device kind call the compiled module :func:`native` returns for it (the CPU
+module with its counting sort and atomic-scatter backward; the CUDA module without them); the tests of
+the CUDA host emulation replace :func:`native` to route CPU tensors through the emulated CUDA module.
+
+The public, validated entry points are in :mod:`nsplat.ops.functional`; the ops here trust their inputs.
+"""
+from __future__ import annotations
+
+import dataclasses
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+from .build import backend
+
+__all__ = ["Native", "native", "sample_op", "composite_forward_op", "composite_backward_op"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Native:
+    """A compiled backend module and the optional functions the kernels use from it.
+
+    Attributes:
+        module: the extension (``sample``, ``composite_forward``, ``composite_backward_pixels``,
+            ``composite_backward_points``; the CPU one also ``entries_by_point`` and
+            ``composite_backward_scatter``).
+        counting_sort: group the backward's slots by point with the native stable counting sort
+            (else :func:`_entries_by_point_sorted`, a device sort).
+        scatter_backward: ``deterministic=False`` uses the single-pass atomic-scatter backward (else the
+            deterministic two-pass backward is used whatever ``deterministic`` says).
+    """
+
+    module: ModuleType
+    counting_sort: bool
+    scatter_backward: bool
+
+
+def native(kind: str) -> Native:
+    """The native backend the ``kind`` ("cpu" or "cuda") kernels of the custom ops call."""
+    if kind == "cpu":
+        return Native(backend(torch.device("cpu")), counting_sort=True, scatter_backward=True)
+    return Native(backend(torch.device("cuda")), counting_sort=False, scatter_backward=False)
+
+
+def _contiguous(*ts: Tensor) -> list[Tensor]:
+    return [t.contiguous() for t in ts]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# nsplat::sample
+
+
+@torch.library.custom_op("nsplat::sample", mutates_args=(), device_types=("cpu", "cuda"))
+def sample_op(mu: Tensor, con: Tensor, amp: Tensor, sig2: Tensor, nrm: Tensor, off: Tensor, zc: Tensor, Ks: Tensor,
+              seed: Tensor, width: int, height: int, samples: int, eps: float, hermite_order: int,
+              hermite_tol: float, inclusion: int, stratified: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per-pixel SPS sample of ``samples`` points of ``B`` cameras (see :func:`nsplat.ops.sample`).
+
+    ``mu [B,N,2]``, ``con [B,N,3]``, ``amp [B,N]``, ``sig2 [B,N]``, ``nrm [B,N,3]``, ``off [B,N]``,
+    ``zc [B,N]`` (one float dtype), ``Ks [B,3,3]``; ``seed`` a 0-dim integer tensor (a tensor so that a
+    seed that changes every step, like :class:`~nsplat.ops.Splatter`'s, is a graph input, not a constant).
+    Returns ``indices [B,H,W,m]`` int32, ``probs [B,H,W,m]``, ``total [B,H,W,1]``, ``work [B,H,W,1]`` int32.
+    """
+    s = int(seed)
+    if not 0 <= s < 2**63:
+        raise ValueError(f"seed: expected a value in [0, 2**63), got {s}")
+    args = _contiguous(mu, con, amp, sig2, nrm, off, zc, Ks)
+    return tuple(native(mu.device.type).module.sample(*args, width, height, samples, float(eps), s, hermite_order,
+                                                      float(hermite_tol), inclusion, bool(stratified)))
+
+
+@sample_op.register_fake
+def _(mu, con, amp, sig2, nrm, off, zc, Ks, seed, width, height, samples, eps, hermite_order, hermite_tol,  # noqa: ANN001
+      inclusion, stratified):
+    B = amp.shape[0]
+    shape, one = (B, height, width, samples), (B, height, width, 1)
+    return (amp.new_empty(shape, dtype=torch.int32), amp.new_empty(shape), amp.new_empty(one),
+            amp.new_empty(one, dtype=torch.int32))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# nsplat::composite_forward (+ autograd) and nsplat::composite_backward
+
+
+@torch.library.custom_op("nsplat::composite_forward", mutates_args=(), device_types=("cpu", "cuda"))
+def composite_forward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off: Tensor, zc: Tensor, Ks: Tensor,
+                         feat: Tensor, bg: Tensor, indices: Tensor, probs: Tensor, mode: int, estimator: int,
+                         deterministic: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite the sample ``indices``/``probs [B,H,W,m]`` of the projected surfels (``[B,N,...]`` as in
+    :func:`sample_op`) with features ``feat [N,C]`` over ``bg [C]``; ``mode`` 0 alpha, 1 additive.
+    ``estimator`` (native code) and ``deterministic`` only select the backward.
+    Returns ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``."""
+    args = _contiguous(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs)
+    return tuple(native(mu.device.type).module.composite_forward(*args, mode))
+
+
+@composite_forward_op.register_fake
+def _(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, mode, estimator, deterministic):  # noqa: ANN001
+    B, H, W, _ = indices.shape
+    return mu.new_empty((B, H, W, feat.shape[1])), mu.new_empty((B, H, W, 1)), mu.new_empty((B, H, W, 1))
+
+
+@torch.library.custom_op("nsplat::composite_backward", mutates_args=(), device_types=("cpu", "cuda"))
+def composite_backward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off: Tensor, zc: Tensor, Ks: Tensor,
+                          feat: Tensor, bg: Tensor, indices: Tensor, probs: Tensor, g_img: Tensor, g_alpha: Tensor,
+                          g_depth: Tensor, mode: int, estimator: int,
+                          deterministic: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Gradients of ``composite_forward`` w.r.t. ``mu, con, amp, nrm, off, zc, feat, bg`` (shapes of those)
+    given ``g_img [B,H,W,C]``, ``g_alpha``, ``g_depth [B,H,W,1]``, with the estimator's weights.
+
+    Deterministic: pass 1 per pixel, pass 2 per point in a fixed (point, camera, slot) order, gradients
+    bitwise identical across runs and thread counts. Non-deterministic (CPU only): one pass per pixel
+    scattering into the per-point buffers with atomics (``csrc/cpu/scatter_cpu.cpp``)."""
+    nat = native(mu.device.type)
+    ops = nat.module
+    params = _contiguous(mu, con, amp, nrm, off, zc)
+    Kc, feat_c, bg_c, idx, pr = _contiguous(Ks, feat, bg, indices, probs)
+    g_img, g_alpha, g_depth = _contiguous(g_img, g_alpha, g_depth)
+    if not deterministic and nat.scatter_backward:
+        *grads, bgw = ops.composite_backward_scatter(*params, Kc, feat_c, bg_c, idx, pr, mode, estimator, g_img,
+                                                     g_alpha, g_depth)
+        return (*grads, (bgw * g_img).sum(dim=(0, 1, 2)))
+    B, H, W, m = idx.shape
+    dalpha, wf, bgw = ops.composite_backward_pixels(*params, Kc, feat_c, bg_c, idx, pr, mode, estimator, g_img,
+                                                    g_alpha, g_depth)
+    entries, seg = _entries_by_point(idx, amp.shape[1], nat)
+    grads = ops.composite_backward_points(*params, Kc, entries, seg, dalpha, wf, g_img, g_depth, W, H, estimator)
+    return (*grads, (bgw * g_img).sum(dim=(0, 1, 2)))
+
+
+@composite_backward_op.register_fake
+def _(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, g_img, g_alpha, g_depth, mode, estimator,  # noqa: ANN001
+      deterministic):
+    return tuple(t.new_empty(t.shape) for t in (mu, con, amp, nrm, off, zc, feat, bg))  # contiguous, as the kernels
+
+
+def _setup_forward(ctx, inputs, output) -> None:  # noqa: ANN001 - torch.library autograd signature
+    mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, mode, estimator, deterministic = inputs
+    ctx.save_for_backward(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs)
+    ctx.mode, ctx.estimator, ctx.deterministic = mode, estimator, deterministic
+
+
+def _backward_forward(ctx, g_img, g_alpha, g_depth):  # noqa: ANN001
+    mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs = ctx.saved_tensors
+    B, H, W, _ = indices.shape
+    if g_img is None:
+        g_img = mu.new_zeros((B, H, W, feat.shape[1]))
+    if g_alpha is None:
+        g_alpha = mu.new_zeros((B, H, W, 1))
+    if g_depth is None:
+        g_depth = mu.new_zeros((B, H, W, 1))
+    grads = composite_backward_op(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, g_img, g_alpha, g_depth,
+                                  ctx.mode, ctx.estimator, ctx.deterministic)
+    return (*grads[:6], None, grads[6], grads[7], None, None, None, None, None)
+
+
+torch.library.register_autograd("nsplat::composite_forward", _backward_forward, setup_context=_setup_forward)
+
+
+def _no_double_backward(ctx, *grads):  # noqa: ANN001
+    raise RuntimeError("nsplat::composite_backward: double backward through the splatting op (nsplat.ops.splat / "
+                       "composite_sample / Splatter) is not supported: its estimator gradients are not themselves "
+                       "differentiable. Do not differentiate the op's gradients (create_graph=True is fine only "
+                       "when the second derivative does not pass through the op).")
+
+
+torch.library.register_autograd("nsplat::composite_backward", _no_double_backward)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The backward's per-point order
+
+
+def _entries_by_point(indices: Tensor, N: int, nat: Native | None = None) -> tuple[Tensor, Tensor]:
+    """Flat slot ids of the filled slots of ``indices [B,H,W,m]`` grouped by point, keeping their
+    (camera, pixel, slot) order within a point, and per-point segment offsets ``seg [N+1]`` (int64).
+
+    A backend with a native stable counting sort (the CPU one) uses it: 8 bytes per filled slot + 8 per
+    point. Otherwise (CUDA): a stable device sort of the int32 point ids, :func:`_entries_by_point_sorted`
+    (positions, ids, sort indices and the gathered order: ≈ 28 bytes per filled slot at the peak).
+    ``nat`` defaults to :func:`native` of the device of ``indices``."""
+    nat = native(indices.device.type) if nat is None else nat
+    if nat.counting_sort:
+        entries, seg = nat.module.entries_by_point(indices.contiguous(), N)
+        return entries, seg
+    return _entries_by_point_sorted(indices, N)
+
+
+def _entries_by_point_sorted(indices: Tensor, N: int) -> tuple[Tensor, Tensor]:
+    """:func:`_entries_by_point` by a stable device sort (any device; the reference for the native one)."""
+    flat = indices.reshape(-1)
+    pos = torch.nonzero(flat >= 0).squeeze(1)
+    keys, order = torch.sort(flat.index_select(0, pos), stable=True)
+    entries = pos.index_select(0, order)
+    del pos, order
+    seg = torch.zeros(N + 1, dtype=torch.long, device=indices.device)
+    seg[1:] = torch.cumsum(torch.bincount(keys, minlength=N), 0)
+    return entries, seg
