@@ -17,7 +17,7 @@ constexpr double kParallelCos = 1e-2;   // ray/plane cosine below which the cent
 // Sampler constants.
 constexpr double kMinTotal = 1e-10;     // pixels whose total size measure is below this get no sample
 constexpr double kMinProb = 1e-8;       // floor on pi in the Horvitz-Thompson weights 1/pi
-constexpr int kLeafSize = 8;            // tree nodes with at most this many points are evaluated exactly
+constexpr int kLeafSize = 8;            // search_subtree evaluates nodes with at most this many points exactly
 constexpr int kStackSize = 72;          // DFS stack; the radix tree over 64-bit keys has depth <= 64
 constexpr int kMaxHermiteOrder = 16;    // per-dimension expansion order cap (validated in Python)
 

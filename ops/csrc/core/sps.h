@@ -1,15 +1,16 @@
 // Per-pixel sequential Poisson sampling (SPS) over the radix tree.
 //
 // Exact SPS draws, per pixel x, the m points with the smallest xi_k = u_k / lambda_k(x). We work with
-// keys log xi. The tree is traversed depth first, larger-bound child first. Each node has a rigorous
-// upper bound U_n(x) of its points' total size measure: min(box bound, Hermite estimate + truncation
-// bound) of the isotropic majorant (hermite.h). Besides the sample (a max-heap of the m smallest keys)
-// the search keeps the threshold xi_(m+1), the smallest key of any point offered but not in the sample.
-// Once it exists, a node is pruned when (P + U_n) * xi_(m+1) < eps, where P is the bound mass pruned
-// so far; since xi_(m+1) only decreases, at the end P * xi_(m+1) < eps, and by the union bound the
-// probability that any unvisited point would have entered the m + 1 smallest keys (so changed the
-// sample or the threshold) is below eps. The total Lambda(x) is estimated as the visited exact mass
-// plus node estimates of the pruned mass, so |Lambda_hat - Lambda| <= P < eps / xi_(m+1).
+// keys log xi. The search visits tree items in decreasing order of a rigorous upper bound U_n(x) of their
+// points' total size measure (tile.h: per-tile item lists, per-pixel bucketed best-first order; search_subtree
+// below for a far subtree that must be opened: depth first, larger-bound child first, with the bound
+// min(box bound, Hermite estimate + truncation bound) of the isotropic majorant, hermite.h). Besides the
+// sample (a max-heap of the m smallest keys) the search keeps the threshold xi_(m+1), the smallest key of any
+// point offered but not in the sample. Once it exists, unvisited mass is pruned while (P + U) * xi_(m+1) < eps,
+// where P is the bound mass pruned so far; since xi_(m+1) only decreases, at the end P * xi_(m+1) < eps, and by
+// the union bound the probability that any unvisited point would have entered the m + 1 smallest keys (so
+// changed the sample or the threshold) is below eps. The total Lambda(x) is estimated as the visited exact
+// mass plus estimates of the pruned mass, so |Lambda_hat - Lambda| <= P < eps / xi_(m+1).
 //
 // Inclusion probabilities (finalize_pixel), one of:
 //   kThreshold: pi_k = min(1, lambda_k * xi_(m+1)) (priority sampling, Duffield-Lund-Thorup 2007). Given
@@ -29,6 +30,8 @@
 
 namespace nsplat {
 
+struct ItemMetric;  // tile.h
+
 // A camera's tree; points are stored in Morton order (double copies of the projected values).
 struct TreeView {
   int64_t n;                  // points in the tree (valid points of this camera)
@@ -41,7 +44,9 @@ struct TreeView {
   const double* mu;           // [n,2]
   const double* con;          // [n,3]
   const double* logA;         // [n]
+  const double* sig2;         // [n] largest principal variance
   const int* id;              // [n] original point index
+  const ItemMetric* metric;     // [n-1] bound metric of the internal nodes with <= kGroupSize points (tile.h)
 };
 
 // Projected splats of one camera in the original point order (working precision S).
@@ -118,95 +123,106 @@ struct PixelStats {
   double total;     // Lambda_hat(x)
   double rest;      // log xi_(m+1), the smallest key outside the sample (+inf: every point with lambda > 0 is in)
   int evaluated;    // exact kernel evaluations (= points visited)
+  int nodes;        // node bounds computed (tile items and tree nodes visited)
   bool exhaustive;  // every point of the tree was visited (nothing pruned)
 };
+
+// Optional per-pixel diagnostics of a sampling call (benchmarks): null pointers are not written.
+struct SamplerCounters {
+  int* nodes;  // [pixels] tree nodes visited
+};
+
+// The search state of one pixel: the sample heap, the threshold and the pruned mass.
+struct PixelState {
+  double* key;        // [m] max-heap of sample keys (log xi)
+  int* idx;           // [m] their original point ids
+  int cnt, m;
+  double visited;     // exact mass of the visited points
+  double rest;        // log xi_(m+1) (+inf while there is none)
+  double xi_rest;     // exp(rest)
+  double log_eps;
+  double budget;      // eps / xi_(m+1) = exp(log_eps - rest): the mass that may stay unvisited (0 while rest = inf)
+  double log_pruned;  // log P, the bound mass pruned so far
+  double pruned_est;  // estimate of the pruned mass (for Lambda_hat)
+  int evaluated, nodes;
+};
+
+NS_HD PixelState pixel_state(double* key, int* idx, int m, double log_eps) {
+  return PixelState{key, idx, 0, m, 0.0, INFINITY, INFINITY, log_eps, 0.0, -INFINITY, 0.0, 0, 0};
+}
 
 // Offers sorted point s to the sample. `rest` is the log threshold xi_(m+1) (the smallest key not in the
 // sample, +inf while there is none) and `xi_rest` = exp(rest): a point with u >= xi_rest * lambda * (1 +
 // 1e-12) cannot change the sample or the threshold and is rejected without computing log u; other
 // candidates are compared on exact keys, so the result is the same as with exact keys everywhere.
-NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw& draw, int m, double* key, int* id,
-                       int* cnt, double* visited, double* rest, double* xi_rest) {
+NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw& draw, PixelState& S) {
   double lam_log = log_size(T.mu + 2 * s, T.con + 3 * s, T.logA[s], u, v);
   double lam = exp(lam_log);
-  *visited += lam;
+  S.visited += lam;
+  ++S.evaluated;
   int pid = T.id[s];
   double un = draw_uniform(draw, pid);
-  if (*cnt == m && un >= *xi_rest * lam * (1.0 + 1e-12)) return;
+  if (S.cnt == S.m && un >= S.xi_rest * lam * (1.0 + 1e-12)) return;
   double k = log(un) - lam_log;
-  if (*cnt < m) {
-    heap_push(key, id, *cnt, k, pid);
-    ++*cnt;
+  if (S.cnt < S.m) {
+    heap_push(S.key, S.idx, S.cnt, k, pid);
+    ++S.cnt;
     return;
   }
-  if (key_less(k, pid, key[0], id[0])) {
-    double evicted = key[0];
-    key[0] = k;
-    id[0] = pid;
-    heap_sift_down(key, id, m, 0);
+  if (key_less(k, pid, S.key[0], S.idx[0])) {
+    double evicted = S.key[0];
+    S.key[0] = k;
+    S.idx[0] = pid;
+    heap_sift_down(S.key, S.idx, S.m, 0);
     k = evicted;
   }
-  if (k < *rest) {
-    *rest = k;
-    *xi_rest = exp(k);
+  if (k < S.rest) {
+    S.rest = k;
+    S.xi_rest = exp(k);
+    S.budget = exp(S.log_eps - k);
   }
 }
 
-// Draws the SPS sample of pixel (u, v). On return idx[0..cnt) holds original point ids and key[] is
-// scratch; `*cnt` is the sample size. Returns the total estimate, the log threshold and work counter.
-NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, const Draw& draw, int m, double log_eps,
-                                double* key, int* idx, int* cnt) {
-  PixelStats st{0.0, INFINITY, 0, true};
-  *cnt = 0;
-  if (T.n == 0) return st;
-  double visited = 0.0, rest = INFINITY, xi_rest = INFINITY;
-  if (T.n == 1) {
-    offer_point(T, 0, u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
-    st.total = visited;
-    st.rest = rest;
-    st.evaluated = 1;
-    return st;
-  }
+// Depth-first search of the subtree of internal node `root` (larger-bound child first). A node is pruned
+// when (P + U_n) * xi_(m+1) < eps * kDfsShare: the search spends at most that share of the budget, leaving
+// the rest for the caller's pending mass (tile.h).
+constexpr double kDfsShare = 0.5;
+
+NS_HD void search_subtree(const TreeView& T, int root, double u, double v, const Draw& draw, PixelState& S) {
+  const double log_limit = S.log_eps + log(kDfsShare);
   int node_st[kStackSize];
   double lub_st[kStackSize], est_st[kStackSize];
-  double root_lub, root_est;
-  node_bound(T, 0, u, v, &root_lub, &root_est);
-  if (root_lub < log(kMinTotal)) {  // certainly below the floor
-    st.exhaustive = false;
-    return st;
-  }
   int sp = 0;
-  node_st[sp] = 0; lub_st[sp] = root_lub; est_st[sp] = root_est; ++sp;
-  double log_pruned = -INFINITY, pruned_est = 0.0;
+  node_bound(T, root, u, v, &lub_st[0], &est_st[0]);
+  node_st[0] = root;
+  ++S.nodes;
+  ++sp;
   while (sp > 0) {
     --sp;
     int node = node_st[sp];
     double lub = lub_st[sp];
-    if (rest < INFINITY) {
-      double lp = log_add_exp(log_pruned, lub);
-      if (lp + rest < log_eps) {
-        log_pruned = lp;
-        pruned_est += est_st[sp];
+    if (S.rest < INFINITY) {
+      double lp = log_add_exp(S.log_pruned, lub);
+      if (lp + S.rest < log_limit) {
+        S.log_pruned = lp;
+        S.pruned_est += est_st[sp];
         continue;
       }
     }
     const InternalNode& nd = T.nodes[node];
     if (nd.last - nd.first + 1 <= kLeafSize) {
-      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
-      st.evaluated += nd.last - nd.first + 1;
+      for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, draw, S);
       continue;
     }
     int child[2] = {nd.left, nd.right};
     double cl[2], ce[2];
-    int internal = 0;
     for (int c = 0; c < 2; ++c) {
       if (child[c] < 0) {
-        offer_point(T, ~child[c], u, v, draw, m, key, idx, cnt, &visited, &rest, &xi_rest);
-        st.evaluated += 1;
+        offer_point(T, ~child[c], u, v, draw, S);
         cl[c] = -INFINITY;
       } else {
         node_bound(T, child[c], u, v, &cl[c], &ce[c]);
-        ++internal;
+        ++S.nodes;
       }
     }
     // push the smaller bound first so that the larger is visited next
@@ -217,10 +233,6 @@ NS_HD PixelStats traverse_pixel(const TreeView& T, double u, double v, const Dra
       node_st[sp] = child[c]; lub_st[sp] = cl[c]; est_st[sp] = ce[c]; ++sp;
     }
   }
-  st.total = visited + pruned_est;
-  st.rest = rest;
-  st.exhaustive = log_pruned == -INFINITY;
-  return st;
 }
 
 // Turns the heap into the output sample: inclusion probabilities (kThreshold from the log threshold

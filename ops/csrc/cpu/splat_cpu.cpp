@@ -11,6 +11,7 @@
 #include "../api.h"  // the declarations this file defines; bound in bindings.cpp
 #include "../core/composite.h"
 #include "../core/sps.h"
+#include "../core/tile.h"
 #include "../core/tree_build.h"
 
 namespace nsplat {
@@ -39,6 +40,7 @@ struct CpuTree {
     t.mu = mu.data();
     t.con = con.data();
     t.logA = logA.data();
+    t.sig2 = sig2.data();
     t.id = id.data();
     return t;
   }
@@ -145,35 +147,67 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
                  const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, int64_t width,
                  int64_t height, int64_t m, double log_eps, int64_t seed, int order, double tol, int inclusion,
                  bool stratified, at::Tensor& indices,
-                 at::Tensor& probs, at::Tensor& total, at::Tensor& work) {
+                 at::Tensor& probs, at::Tensor& total, at::Tensor& work, const SamplerCounters* counters = nullptr) {
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height;
   const int nt = num_threads();
   for (int64_t b = 0; b < B; ++b) {
     CpuTree tree;
     build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
                   sig2.data_ptr<S>() + b * N, N, order, tol);
-    const TreeView tv = tree.view();
+    TreeView tv = tree.view();
+    std::vector<ItemMetric> metric(std::max<int64_t>(tv.n - 1, 1));
+#pragma omp parallel for num_threads(nt) schedule(static)
+    for (int64_t i = 0; i < tv.n - 1; ++i) {
+      const InternalNode& nd = tv.nodes[i];
+      if (nd.last - nd.first + 1 <= kGroupSize) metric[i] = group_metric(tv, nd.first, nd.last);
+    }
+    tv.metric = metric.data();
     const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
     const double* K = Kd.data_ptr<double>() + b * 9;
     int* idx_b = indices.data_ptr<int>() + b * P * m;
     S* prob_b = probs.data_ptr<S>() + b * P * m;
     S* total_b = total.data_ptr<S>() + b * P;
     int* work_b = work.data_ptr<int>() + b * P;
+    // One task per kTileSize^2 tile: its items (tile.h) once, then the tile's pixels.
+    const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles_y = (height + kTileSize - 1) / kTileSize;
+    const double log_theta = tile_log_theta(log_eps, static_cast<int>(m));
+    const double log_far = tile_log_far(log_eps, static_cast<int>(m));
 #pragma omp parallel num_threads(nt)
     {
       std::vector<double> key(m);
-#pragma omp for schedule(dynamic, 16)
-      for (int64_t p = 0; p < P; ++p) {
-        double u = double(p % width) + 0.5, v = double(p / width) + 0.5;
-        const Draw draw = pixel_draw(static_cast<uint64_t>(seed), b, p, width, stratified);
-        int cnt = 0;
-        int* idx = idx_b + p * m;
-        PixelStats st = traverse_pixel(tv, u, v, draw, static_cast<int>(m), log_eps, key.data(), idx, &cnt);
-        Ray ray = pixel_ray(K, u, v);
-        finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt,
-                       inclusion, key.data(), idx, prob_b + p * m);
-        total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
-        work_b[p] = st.evaluated;
+      std::vector<TileItem> items, tmp;
+      std::vector<int> order, bins;
+#pragma omp for schedule(dynamic, 1)
+      for (int64_t t = 0; t < tiles_x * tiles_y; ++t) {
+        const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
+        const int64_t x1 = std::min(width, x0 + kTileSize), y1 = std::min(height, y0 + kTileSize);
+        const double ux0 = x0 + 0.5, vy0 = y0 + 0.5, ux1 = x1 - 0.5, vy1 = y1 - 0.5;
+        int tile_nodes = 0;
+        const int n_items = tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, nullptr, nullptr);
+        items.resize(std::max(n_items, 1));
+        tmp.resize(std::max(n_items, 1));
+        order.resize(std::max(n_items, 1));
+        bins.resize(std::max(n_items, 1));
+        tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, items.data(), &tile_nodes);
+        const int n_near = arrange_tile_items(items.data(), n_items, tmp.data());
+        const int tile_share = static_cast<int>((tile_nodes + (x1 - x0) * (y1 - y0) - 1) / ((x1 - x0) * (y1 - y0)));
+        for (int64_t py = y0; py < y1; ++py) {
+          for (int64_t px = x0; px < x1; ++px) {
+            const int64_t p = py * width + px;
+            const double u = double(px) + 0.5, v = double(py) + 0.5;
+            const Draw draw = pixel_draw(static_cast<uint64_t>(seed), b, p, width, stratified);
+            int cnt = 0;
+            int* idx = idx_b + p * m;
+            PixelStats st = sample_pixel(tv, items.data(), n_items, n_near, u, v, draw, static_cast<int>(m), log_eps,
+                                         key.data(), idx, &cnt, order.data(), bins.data());
+            Ray ray = pixel_ray(K, u, v);
+            finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.rest,
+                           st.exhaustive && st.evaluated == cnt, inclusion, key.data(), idx, prob_b + p * m);
+            total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
+            work_b[p] = st.evaluated;
+            if (counters && counters->nodes) counters->nodes[b * P + p] = st.nodes + tile_share;
+          }
+        }
       }
     }
   }

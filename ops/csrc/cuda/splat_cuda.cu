@@ -42,6 +42,7 @@
 
 #include "../core/composite.h"
 #include "../core/sps.h"
+#include "../core/tile.h"
 #include "../core/tree_build.h"
 
 namespace nsplat {
@@ -242,7 +243,9 @@ struct CudaTree {
     t.mu = ptr<double>(mu);
     t.con = ptr<double>(con);
     t.logA = ptr<double>(logA);
+    t.sig2 = ptr<double>(sig2);
     t.id = ptr<int>(id);
+    t.metric = nullptr;
     return t;
   }
 };
@@ -356,20 +359,48 @@ SplatsBase<S> splats_base(const at::Tensor& mu, const at::Tensor& con, const at:
 // ---------------------------------------------------------------------------------------------------------
 // Per-pixel kernels.
 
-// Sampling of camera b: the CPU loop body, one thread per pixel; `key` is a pixels x m double scratch.
+// Bound metrics of the group nodes (tile.h), one thread per internal node.
+__global__ void group_metric_kernel(TreeView tv, ItemMetric* __restrict__ metric) {
+  NS_GRID_STRIDE(i, tv.n - 1) {
+    const InternalNode& nd = tv.nodes[i];
+    if (nd.last - nd.first + 1 <= kGroupSize) metric[i] = group_metric(tv, nd.first, nd.last);
+  }
+}
+
+// Tile item lists (tile.h), one thread per tile: first the counts (items == nullptr), then, at the offsets'
+// exclusive scan, the items themselves.
+__global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, int64_t tiles_x, int64_t tiles,
+                                  double log_theta, double log_far, int64_t* __restrict__ counts,
+                                  const int64_t* __restrict__ offsets, TileItem* __restrict__ items) {
+  NS_GRID_STRIDE(t, tiles) {
+    const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
+    const int64_t x1 = x0 + kTileSize < width ? x0 + kTileSize : width;
+    const int64_t y1 = y0 + kTileSize < height ? y0 + kTileSize : height;
+    const int n = tile_items(tv, x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5, log_theta, log_far,
+                             items ? items + offsets[t] : nullptr, nullptr);
+    if (counts) counts[t] = n;
+  }
+}
+
+// Sampling of camera b: the CPU tile loop body, one thread per pixel over its tile's items (no scratch: one
+// sweep per bin, the same visiting order as the CPU's sort); `key` is a pixels x m double scratch.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t P, int m,
                   double log_eps, uint64_t seed, int64_t b, int inclusion, bool stratified,
+                  const TileItem* __restrict__ items, const int64_t* __restrict__ offsets, int64_t tiles_x,
                   double* __restrict__ key_scratch, int* __restrict__ idx_b,
                   S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
   NS_GRID_STRIDE(p, P) {
-    const double u = static_cast<double>(p % width) + 0.5, v = static_cast<double>(p / width) + 0.5;
+    const int64_t px = p % width, py = p / width;
+    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
     const Draw draw = pixel_draw(seed, b, p, width, stratified);
     int cnt = 0;
     int* idx = idx_b + p * m;
     double* key = key_scratch + p * m;
-    const PixelStats st = traverse_pixel(tv, u, v, draw, m, log_eps, key, idx, &cnt);
+    const int64_t t = (py / kTileSize) * tiles_x + px / kTileSize;
+    const PixelStats st = sample_pixel(tv, items + offsets[t], static_cast<int>(offsets[t + 1] - offsets[t]), 0, u,
+                                       v, draw, m, log_eps, key, idx, &cnt, nullptr, nullptr);
     const Ray ray = pixel_ray(K, u, v);
     finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt, inclusion, key, idx,
                    prob_b + p * m);
@@ -504,6 +535,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   if (P == 0 || B == 0) return {indices, probs, total, work};
   at::Tensor key_scratch = at::empty({P * m}, opts.dtype(at::kDouble));  // reused by every camera
   const double log_eps = std::log(eps);
+  const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
+  const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
     using S = scalar_t;
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
@@ -511,9 +544,29 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       CudaTree tree;
       build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
                     sig2.data_ptr<S>() + b * N, N, static_cast<int>(order), tol, opts, stream);
+      TreeView tv = tree.view();
+      at::Tensor metric = bytes(std::max<int64_t>(tv.n - 1, 1) * static_cast<int64_t>(sizeof(ItemMetric)), opts);
+      if (tv.n > 1) {
+        NS_LAUNCH(group_metric_kernel, blocks_for(tv.n - 1, kThreads), kThreads, stream, tv, as<ItemMetric>(metric));
+        NS_LAUNCH_CHECK();
+      }
+      tv.metric = as<ItemMetric>(metric);
+      // tile item lists: counts, exclusive scan (one trailing zero: the last offset is the total), items
+      at::Tensor counts = at::zeros({tiles + 1}, opts.dtype(at::kLong));
+      at::Tensor offsets = at::empty({tiles + 1}, opts.dtype(at::kLong));
+      NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
+                log_theta, log_far, counts.data_ptr<int64_t>(), nullptr, nullptr);
+      NS_LAUNCH_CHECK();
+      exclusive_sum(counts.data_ptr<int64_t>(), offsets.data_ptr<int64_t>(), tiles + 1, opts, stream);
+      const int64_t n_items = offsets[tiles].item<int64_t>();  // synchronises
+      at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
+      NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
+                log_theta, log_far, nullptr, offsets.data_ptr<int64_t>(), as<TileItem>(items));
+      NS_LAUNCH_CHECK();
       NS_LAUNCH(sample_kernel<S>, blocks_for(P, kPixelThreads), kPixelThreads, stream,
-          tree.view(), base.camera(b), Kd.data_ptr<double>() + b * 9, width, P, static_cast<int>(m), log_eps,
-          static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
+          tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, P, static_cast<int>(m), log_eps,
+          static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, as<TileItem>(items),
+          offsets.data_ptr<int64_t>(), tiles_x, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
           probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
       NS_LAUNCH_CHECK();
       // The tree's tensors go back to the caching allocator here, in stream order.

@@ -1,0 +1,107 @@
+"""Real-geometry scenes for the sampler benchmark (benchmarks/sampler_real.py), generated once and cached.
+
+Each scene is the surfels ``means, normals, scales, opacities [N]`` of a task plus one camera (``viewmat
+[4,4]``, ``K [3,3]``, ``width``, ``height``), saved as ``data_cache/sampler_scenes/<name>.pt`` (gitignored):
+
+  default_fit  the neural task's default procedural scene (configs/default.yaml), stage-1 surfels fitted for
+               ``--default-epochs`` epochs, first training view, 64².
+  lego_hull    lego (configs/lego.yaml) visual-hull surfels (the stage-1 init, 40k points), first training
+               view, 200².
+  lego_fit     lego_hull fitted with the sampled op for ``--lego-steps`` steps of batch 4 (a short stage 1).
+  bunny        the reconstruction task's bunny (configs/reconstruct_bunny.yaml) at 256²: its ground-truth
+               surfels (what a converged reconstruction approaches) in the first training view.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+CACHE = ROOT / "data_cache" / "sampler_scenes"
+
+
+def _save(name: str, scene, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int, **meta) -> None:
+    CACHE.mkdir(parents=True, exist_ok=True)
+    torch.save({"means": scene.means.detach().clone(), "normals": scene.normals.detach().clone(),
+                "scales": scene.scales.detach().clone(), "opacities": scene.opacities.detach().clone(),
+                "viewmat": viewmat.clone(), "K": K.clone(), "width": width, "height": height, **meta},
+               CACHE / f"{name}.pt")
+
+
+def _neural(config: str, overrides: list[str]):
+    from nsplat.config import load_config, read_yaml
+    from nsplat.tasks import neural
+
+    cfg = load_config(neural.Config, read_yaml(ROOT / "configs" / config), overrides)
+    train = neural.load_views(cfg, "train", torch.device("cpu"))
+    return cfg, train, neural
+
+
+def _fit(neural, cfg, train, scene, epochs: int, views: int | None, tag: str) -> None:
+    import dataclasses
+
+    from nsplat.reconstruct import fit
+
+    n = views or train.images.shape[0]
+    ocfg = dataclasses.replace(cfg.geometry.optim, epochs=epochs)
+    fit(scene, train.images[:n], train.viewmats[:n], train.Ks[:n], ocfg, cfg.render, ROOT / "runs" / f"_sampler_{tag}",
+        seed=0, background=train.background, progress=False)
+
+
+def make_default(epochs: int) -> None:
+    cfg, train, neural = _neural("default.yaml", [])
+    scene = neural._initial_geometry(cfg, train, 0)
+    _fit(neural, cfg, train, scene, epochs, None, "default")
+    keep = scene.opacities >= cfg.geometry.prune_opacity
+    scene = neural.neural_scene_from(cfg, scene, 0)
+    H, W = train.images.shape[1:3]
+    _save("default_fit", scene, train.viewmats[0], train.Ks[0], W, H, pruned=int((~keep).sum()), epochs=epochs)
+
+
+def make_lego(steps: int) -> None:
+    cfg, train, neural = _neural("lego.yaml", [])
+    scene = neural._initial_geometry(cfg, train, 0)
+    H, W = train.images.shape[1:3]
+    _save("lego_hull", scene, train.viewmats[0], train.Ks[0], W, H)
+    if steps > 0:
+        views = steps * cfg.geometry.optim.batch
+        _fit(neural, cfg, train, scene, 1, views, "lego")
+        _save("lego_fit", scene, train.viewmats[0], train.Ks[0], W, H, fit_views=views)
+
+
+def make_bunny() -> None:
+    from nsplat.config import load_config, read_yaml
+    from nsplat.data.pointclouds import load_dss_shape
+    from nsplat.scene import SceneConfig, SurfelScene
+    from nsplat.tasks import reconstruct
+
+    cfg = load_config(reconstruct.Config, read_yaml(ROOT / "configs" / "reconstruct_bunny.yaml"))
+    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    gt = reconstruct.gt_scene(pc, cfg.data)
+    viewmats, Ks = reconstruct.view_cameras(1, pc, cfg.data)
+    scene = SurfelScene.from_points(SceneConfig(channels=3, opacity=cfg.scene.opacity), gt["means"], gt["normals"],
+                                    scales=gt["scales"])
+    _save("bunny", scene, viewmats[0], Ks[0], cfg.data.width, cfg.data.height)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="*", default=["default", "lego", "bunny"])
+    ap.add_argument("--default-epochs", type=int, default=3)
+    ap.add_argument("--lego-steps", type=int, default=3)
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.manual_seed(0)
+    for name in args.only:
+        t0 = time.time()
+        {"default": lambda: make_default(args.default_epochs), "lego": lambda: make_lego(args.lego_steps),
+         "bunny": make_bunny}[name]()
+        print(f"{name}: {time.time() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

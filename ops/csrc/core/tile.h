@@ -1,0 +1,320 @@
+// Per-tile item lists and the per-pixel search over them (the paper's per-block expansion caching).
+//
+// Tile pass (once per kTileSize x kTileSize pixel tile): the tree is cut into "items" with bounds over the
+// whole tile rectangle R. A node becomes an item when it holds at most kGroupSize points (a group, whose
+// points are evaluated exactly when the group is visited) or when its box bound over R,
+//   U_n(R) = sum_amp exp(-dist(box_n, R)^2 / (2 h^2)),
+// is below theta (a far subtree, searched per pixel with search_subtree when visited). Every point of the
+// tree is in exactly one item, so nothing is dropped at the tile level. Items whose bound over R is below
+// a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel.
+//
+// Pixel pass (sample_pixel): every near item gets its bound U_i(x) at the pixel centre (the smaller of the
+// isotropic box bound and the ellipse bound of ItemMetric); items are visited in decreasing bound order,
+// bucketed in bins of kBinWidth in log U (stable within a bin, so the order is the same with a counting sort
+// (CPU) or with one sweep per bin (CUDA)). Before each item, with R a bound of the summed bounds of the
+// items not yet visited and P the mass pruned inside subtrees, the search stops when (P + R) xi_(m+1) < eps
+// (the remaining items are pruned), or when visited + P + R < kMinTotal (the pixel is certainly below the
+// floor and stays empty). This spends the budget eps / xi_(m+1) on the smallest bounds only, and xi_(m+1)
+// drops early because the largest lambdas come first. The guarantee is the one of sps.h: at the end
+// P_total xi_(m+1) < eps, so the sample and xi_(m+1) are the exact SPS ones except with probability < eps
+// (union bound over the unvisited points, whose draws are independent of the visited ones), and
+// |Lambda_hat - Lambda| <= P_total. The draws are the same (a point's u depends on the pixel and the point
+// only), only the order of the visits and the set of visited points change.
+#pragma once
+#include "sps.h"
+
+namespace nsplat {
+
+constexpr int kGroupSize = 8;        // nodes with at most this many points are evaluated as one item
+constexpr int kTileSize = 4;        // tile edge in pixels
+constexpr int kBins = 120;               // log-bound bins of the pixel pass
+constexpr double kBinTop = 2.0;          // upper edge of bin 0 in log U (bounds above it go to bin 0)
+constexpr double kBinWidth = 0.5;        // bin width in log U
+constexpr double kBinStep = 0.60653066;  // >= exp(-kBinWidth) = 0.606530659712633...
+// A subtree is cut off at the tile level when its bound over the tile is below eps * kTileTheta / (m + 1)
+// (a fraction of the budget eps / xi_(m+1) >= eps Lambda / (m + 1) of a pixel with Lambda ~ 1).
+constexpr double kTileTheta = 1e-9;
+// Items whose bound over the tile is below eps * kTileFar / (m + 1) are binned once per tile (far items).
+constexpr double kTileFar = 1e-4;
+
+// Ellipse bound of an item at a pixel: every point j of the item has q_j(x - mu_j) >= |x - mu_j|_M^2 for the
+// metric M, and |mu_j - c|_M <= r, so by the triangle inequality
+//   lambda_j(x) <= A_j exp(-max(0, |x - c|_M - r)^2 / 2)   and   sum_j lambda_j(x) <= sum_j A_j * (same).
+struct ItemMetric {
+  double cx, cy;      // centre c
+  double ma, mb, mc;  // M = [[ma, mb], [mb, mc]]
+  double r;           // radius of the means about c in the metric M
+};
+
+// Metric of a group of sorted points first..last: M = c_min Q, Q the mean conic of the group and c_min the
+// smallest generalised eigenvalue of (Q_j, Q) over the group, so Q_j >= M for every j (Loewner order).
+// Neighbouring surfels project to similar ellipses, so c_min stays close to 1 even for elongated splats,
+// where the isotropic majorant exp(-|d|^2 / (2 sigma_max^2)) is loose across the short axis.
+NS_HD ItemMetric group_metric(const TreeView& T, int first, int last) {
+  double qa = 0.0, qb = 0.0, qc = 0.0, cx = 0.0, cy = 0.0;
+  const int n = last - first + 1;
+  for (int s = first; s <= last; ++s) {
+    qa += T.con[3 * s]; qb += T.con[3 * s + 1]; qc += T.con[3 * s + 2];
+    cx += T.mu[2 * s]; cy += T.mu[2 * s + 1];
+  }
+  qa /= n; qb /= n; qc /= n; cx /= n; cy /= n;
+  const double dq = qa * qc - qb * qb;
+  double cmin = 1.0;
+  for (int s = first; s <= last; ++s) {
+    const double a = T.con[3 * s], b = T.con[3 * s + 1], c = T.con[3 * s + 2];
+    // det(Q_j - l Q) = dq l^2 - t l + dj = 0; smallest root 2 dj / (t + sqrt(t^2 - 4 dq dj)), no cancellation
+    const double t = a * qc + c * qa - 2.0 * b * qb, dj = a * c - b * b;
+    const double l = 2.0 * dj / (t + sqrt(dmax(t * t - 4.0 * dq * dj, 0.0)));
+    cmin = dmin(cmin, l);
+  }
+  cmin = dmax(cmin, 0.0) * (1.0 - 1e-9);  // rounding margin: M stays below every Q_j
+  ItemMetric g{cx, cy, cmin * qa, cmin * qb, cmin * qc, 0.0};
+  for (int s = first; s <= last; ++s) {
+    const double dx = T.mu[2 * s] - cx, dy = T.mu[2 * s + 1] - cy;
+    g.r = dmax(g.r, sqrt(dmax(g.ma * dx * dx + 2.0 * g.mb * dx * dy + g.mc * dy * dy, 0.0)));
+  }
+  g.r = g.r * (1.0 + 1e-9) + 1e-12;
+  return g;
+}
+
+struct TileItem {
+  ItemMetric g;     // ellipse bound (see ItemMetric)
+  double box[4];    // box of the means
+  double inv2h2;    // 1 / (2 h^2), h^2 the largest principal variance
+  double log_amp;   // log of the summed amplitudes
+  int ref;          // node reference (>= 0 internal node, < 0 point ~ref)
+  int first, last;  // sorted points covered
+  int group;        // 1: evaluate the points exactly; 0: search the subtree
+  int tile_bin;     // -1: near item (bounded per pixel); >= 0: far item, binned by its bound over the tile
+};
+
+// Item of node reference `ref`. Groups (at most kGroupSize points) take their precomputed metric
+// (T.metric); a single point its own conic; a larger subtree the isotropic M = I / h^2 about its box centre.
+NS_HD TileItem tile_item(const TreeView& T, int ref) {
+  TileItem it;
+  it.ref = ref;
+  it.tile_bin = -1;
+  if (ref < 0) {
+    int s = ~ref;
+    it.g = ItemMetric{T.mu[2 * s], T.mu[2 * s + 1], T.con[3 * s], T.con[3 * s + 1], T.con[3 * s + 2], 0.0};
+    it.log_amp = T.logA[s];
+    it.box[0] = it.box[2] = T.mu[2 * s];
+    it.box[1] = it.box[3] = T.mu[2 * s + 1];
+    it.inv2h2 = 0.5 / dmax(T.sig2[s], 1e-300);
+    it.first = it.last = s;
+    it.group = 1;
+    return it;
+  }
+  const NodeAgg& a = T.agg[ref];
+  it.log_amp = a.log_amp;
+  for (int c = 0; c < 4; ++c) it.box[c] = a.box[c];
+  it.inv2h2 = 0.5 / dmax(a.h2, 1e-300);
+  it.first = T.nodes[ref].first;
+  it.last = T.nodes[ref].last;
+  it.group = it.last - it.first + 1 <= kGroupSize;
+  if (it.group) {
+    it.g = T.metric[ref];
+  } else {
+    const double ih2 = 1.0 / dmax(a.h2, 1e-300), hx = 0.5 * (a.box[2] - a.box[0]), hy = 0.5 * (a.box[3] - a.box[1]);
+    it.g = ItemMetric{0.5 * (a.box[0] + a.box[2]), 0.5 * (a.box[1] + a.box[3]), ih2, 0.0, ih2,
+                      sqrt((hx * hx + hy * hy) * ih2) * (1.0 + 1e-9)};
+  }
+  return it;
+}
+
+// log of the bound of item `it` at pixel (u, v).
+NS_HD double item_log_bound(const TileItem& it, double u, double v) {
+  const double dx = u - it.g.cx, dy = v - it.g.cy;
+  const double d = sqrt(dmax(it.g.ma * dx * dx + 2.0 * it.g.mb * dx * dy + it.g.mc * dy * dy, 0.0)) - it.g.r;
+  const double bx = dmax(dmax(it.box[0] - u, u - it.box[2]), 0.0);
+  const double by = dmax(dmax(it.box[1] - v, v - it.box[3]), 0.0);
+  return it.log_amp - dmax(d > 0.0 ? 0.5 * d * d : 0.0, (bx * bx + by * by) * it.inv2h2);
+}
+
+// log of the box bound of internal node `node` over the rectangle [x0, x1] x [y0, y1].
+NS_HD double node_rect_log_bound(const TreeView& T, int node, double x0, double y0, double x1, double y1) {
+  const NodeAgg& a = T.agg[node];
+  double dx = dmax(dmax(a.box[0] - x1, x0 - a.box[2]), 0.0);
+  double dy = dmax(dmax(a.box[1] - y1, y0 - a.box[3]), 0.0);
+  return a.log_amp - (dx * dx + dy * dy) / (2.0 * dmax(a.h2, 1e-300));
+}
+
+// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1]. Writes them to
+// `out` when it is not null; returns their number. `nodes` (if not null) gets the nodes visited.
+NS_HD int bound_bin(double lb);
+
+// log of the box bound of `it` over the rectangle [x0, x1] x [y0, y1].
+NS_HD double item_rect_log_bound(const TileItem& it, double x0, double y0, double x1, double y1) {
+  double dx = dmax(dmax(it.box[0] - x1, x0 - it.box[2]), 0.0);
+  double dy = dmax(dmax(it.box[1] - y1, y0 - it.box[3]), 0.0);
+  return it.log_amp - (dx * dx + dy * dy) * it.inv2h2;
+}
+
+// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1], in Morton order.
+// Items whose bound over the tile is below exp(log_far) are "far": they keep the bin of that tile bound
+// (tile_bin) and are not bounded per pixel. Writes the items to `out` when it is not null; returns their
+// number. `nodes` (if not null) gets the tree nodes visited.
+NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double y1, double log_theta,
+                     double log_far, TileItem* out, int* nodes) {
+  if (T.n == 0) return 0;
+  int st[kStackSize];
+  int sp = 0, count = 0, visited = 0;
+  st[sp++] = T.n == 1 ? ~0 : 0;
+  while (sp > 0) {
+    int ref = st[--sp];
+    ++visited;
+    const bool item = ref < 0 || T.nodes[ref].last - T.nodes[ref].first + 1 <= kGroupSize ||
+                      node_rect_log_bound(T, ref, x0, y0, x1, y1) < log_theta;
+    if (item) {
+      if (out) {
+        TileItem it = tile_item(T, ref);
+        const double lt = item_rect_log_bound(it, x0, y0, x1, y1);
+        if (lt < log_far && bound_bin(lt) > 0) it.tile_bin = bound_bin(lt);
+        out[count] = it;
+      }
+      ++count;
+      continue;
+    }
+    st[sp++] = T.nodes[ref].right;  // left first: items in Morton order
+    st[sp++] = T.nodes[ref].left;
+  }
+  if (nodes) *nodes = visited;
+  return count;
+}
+
+// CPU layout of a tile's list (sample_pixel with scratch): near items first, then the far ones stably sorted
+// by tile_bin, so that every bin's far items are contiguous and in Morton order. Returns the near count.
+inline int arrange_tile_items(TileItem* items, int n, TileItem* tmp) {
+  int near = 0;
+  int count[kBins + 1] = {0};
+  for (int i = 0; i < n; ++i) {
+    if (items[i].tile_bin < 0) tmp[near++] = items[i];
+    else ++count[items[i].tile_bin + 1];
+  }
+  for (int b = 0; b < kBins; ++b) count[b + 1] += count[b];
+  for (int i = 0; i < n; ++i)
+    if (items[i].tile_bin >= 0) tmp[near + count[items[i].tile_bin]++] = items[i];
+  for (int i = 0; i < n; ++i) items[i] = tmp[i];
+  return near;
+}
+
+NS_HD double tile_log_theta(double log_eps, int m) { return log_eps + log(kTileTheta / (m + 1.0)); }
+NS_HD double tile_log_far(double log_eps, int m) { return log_eps + log(kTileFar / (m + 1.0)); }
+
+NS_HD int bound_bin(double lb) {
+  double b = (kBinTop - lb) * (1.0 / kBinWidth);
+  return b <= 0.0 ? 0 : (b >= kBins - 1 ? kBins - 1 : static_cast<int>(b));
+}
+
+// Visits item `it` at the pixel: offers its points, or searches its subtree.
+NS_HD void visit_item(const TreeView& T, const TileItem& it, double u, double v, const Draw& draw, PixelState& S) {
+  if (it.group) {
+    for (int s = it.first; s <= it.last; ++s) offer_point(T, s, u, v, draw, S);
+  } else {
+    search_subtree(T, it.ref, u, v, draw, S);
+  }
+}
+
+// The SPS sample of pixel (u, v) from its tile's items (see the file comment). Near items are binned by their
+// bound at the pixel, far items by their (larger) bound over the tile; a bin's near items are visited before
+// its far ones, each in Morton order. With `order` and `bins` scratch (n_near ints each) the items must be
+// arranged by arrange_tile_items (n_near its result) and the near ones are counting-sorted by bin once;
+// without scratch the items are in tile_items' order (n_near unused) and each bin is one sweep over them.
+// Both give the same visiting order. On return idx[0..cnt) holds original point ids, key[] is scratch.
+//
+// Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
+// the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
+// bound in it). This overestimates the pending mass by less than exp(kBinWidth), with exact integer counts
+// instead of running differences of floating-point sums.
+NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
+                              const Draw& draw, int m, double log_eps, double* key, int* idx, int* cnt, int* order,
+                              int* bins) {
+  PixelStats st{0.0, INFINITY, 0, 0, true};
+  *cnt = 0;
+  int near[kBins + 1], far[kBins + 1];
+  for (int b = 0; b <= kBins; ++b) near[b] = far[b] = 0;
+  double lb0 = -INFINITY;  // largest near bound (bin 0's top; far items are never in bin 0)
+  const int n_scan = order ? n_near : n;
+  for (int i = 0; i < n_scan; ++i) {
+    if (items[i].tile_bin >= 0) { ++far[items[i].tile_bin]; continue; }
+    const double lb = item_log_bound(items[i], u, v);
+    const int b = bound_bin(lb);
+    lb0 = dmax(lb0, lb);
+    ++near[b];
+    if (order) bins[i] = b;
+  }
+  if (order)
+    for (int i = n_near; i < n; ++i) ++far[items[i].tile_bin];
+  st.nodes = n_scan;
+  // top[b] >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products
+  double top[kBins], suffix[kBins + 1];
+  top[0] = exp(lb0) * (1.0 + 1e-12);
+  double t = exp(kBinTop) * (1.0 + 1e-12);
+  for (int b = 1; b < kBins; ++b) {
+    t *= kBinStep;
+    top[b] = t;
+  }
+  suffix[kBins] = 0.0;
+  for (int b = kBins - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * top[b];
+  if (suffix[0] < kMinTotal) {  // certainly below the floor
+    st.exhaustive = n == 0;
+    return st;
+  }
+  // bin b's near items: order[near_at[b] .. near_at[b+1]); far items: items[far_at[b] .. far_at[b+1])
+  int near_at[kBins + 1], far_at[kBins + 1];
+  if (order) {
+    near_at[0] = 0;
+    far_at[0] = n_near;
+    for (int b = 0; b < kBins; ++b) {
+      near_at[b + 1] = near_at[b] + near[b];
+      far_at[b + 1] = far_at[b] + far[b];
+    }
+    int fill[kBins];
+    for (int b = 0; b < kBins; ++b) fill[b] = near_at[b];
+    for (int i = 0; i < n_near; ++i) order[fill[bins[i]]++] = i;
+  }
+  PixelState S = pixel_state(key, idx, m, log_eps);
+  bool stopped = false;
+  for (int b = 0; b < kBins && !stopped; ++b) {
+    int left = near[b] + far[b];  // items of bin b not yet visited
+    for (int pass = 0; pass < 2 && left > 0 && !stopped; ++pass) {  // near items, then far ones
+      const int j0 = order ? (pass == 0 ? near_at[b] : far_at[b]) : 0;
+      const int j1 = order ? (pass == 0 ? near_at[b + 1] : far_at[b + 1]) : n;
+      for (int j = j0; j < j1; ++j) {
+        const int i = order && pass == 0 ? order[j] : j;
+        if (!order) {
+          const int tb = items[i].tile_bin;
+          if (pass == 0 ? (tb >= 0 || bound_bin(item_log_bound(items[i], u, v)) != b) : tb != b) continue;
+        }
+        const double R = left * top[b] + suffix[b + 1];  // pending bound mass
+        const double pruned = S.log_pruned == -INFINITY ? 0.0 : exp(S.log_pruned);
+        if (S.visited + pruned + R < kMinTotal) {  // Lambda is certainly below the floor: the pixel stays empty
+          S.log_pruned = log_add_exp(S.log_pruned, log(R));
+          S.pruned_est += 0.5 * R;
+          stopped = true;
+          break;
+        }
+        if (S.rest < INFINITY && pruned + R < S.budget) {  // linear pre-test; the log-domain test decides
+          const double lp = log_add_exp(S.log_pruned, log(R));
+          if (lp + S.rest < log_eps) {
+            S.log_pruned = lp;
+            S.pruned_est += 0.5 * R;
+            stopped = true;
+            break;
+          }
+        }
+        --left;
+        visit_item(T, items[i], u, v, draw, S);
+      }
+    }
+  }
+  *cnt = S.cnt;
+  st.total = S.visited + S.pruned_est;
+  st.rest = S.rest;
+  st.evaluated = S.evaluated;
+  st.nodes += S.nodes;
+  st.exhaustive = S.log_pruned == -INFINITY;
+  return st;
+}
+
+}  // namespace nsplat
