@@ -65,7 +65,8 @@ NS_HD ItemMetric group_metric(const TreeView& T, int first, int last) {
     // det(Q_j - l Q) = dq l^2 - t l + dj = 0; smallest root 2 dj / (t + sqrt(t^2 - 4 dq dj)), no cancellation
     const double t = a * qc + c * qa - 2.0 * b * qb, dj = a * c - b * b;
     const double l = 2.0 * dj / (t + sqrt(dmax(t * t - 4.0 * dq * dj, 0.0)));
-    cmin = dmin(cmin, l);
+    cmin = l >= 0.0 ? dmin(cmin, l) : -1.0;  // a degenerate conic (or NaN) makes M = 0, the trivial bound
+    if (cmin < 0.0) break;
   }
   cmin = dmax(cmin, 0.0) * (1.0 - 1e-9);  // rounding margin: M stays below every Q_j
   ItemMetric g{cx, cy, cmin * qa, cmin * qb, cmin * qc, 0.0};
