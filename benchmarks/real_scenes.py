@@ -44,12 +44,13 @@ def _neural(config: str, overrides: list[str]):
 def _fit(neural, cfg, train, scene, epochs: int, views: int | None, tag: str) -> None:
     import dataclasses
 
-    from nsplat.reconstruct import fit
+    from nsplat.engine import LogConfig
+    from nsplat.fitting import fit
 
     n = views or train.images.shape[0]
     ocfg = dataclasses.replace(cfg.geometry.optim, epochs=epochs)
-    fit(scene, train.images[:n], train.viewmats[:n], train.Ks[:n], ocfg, cfg.render, ROOT / "runs" / f"_sampler_{tag}",
-        seed=0, background=train.background, progress=False)
+    fit(scene, train.subset(list(range(n))), ocfg, cfg.render, ROOT / "runs" / f"_sampler_{tag}", seed=0,
+        background=train.background, log=LogConfig(progress=False))
 
 
 def make_default(epochs: int) -> None:
@@ -77,12 +78,13 @@ def make_bunny() -> None:
     from nsplat.config import load_config, read_yaml
     from nsplat.data.pointclouds import load_dss_shape
     from nsplat.scene import SceneConfig, SurfelScene
+    from nsplat.data import dss
     from nsplat.tasks import reconstruct
 
     cfg = load_config(reconstruct.Config, read_yaml(ROOT / "configs" / "reconstruct_bunny.yaml"))
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    gt = reconstruct.gt_scene(pc, cfg.data)
-    viewmats, Ks = reconstruct.view_cameras(1, pc, cfg.data)
+    gt = dss.gt_scene(pc, cfg.data)
+    viewmats, Ks = dss.view_cameras(1, pc, cfg.data)
     scene = SurfelScene.from_points(SceneConfig(channels=3, opacity=cfg.scene.opacity), gt["means"], gt["normals"],
                                     scales=gt["scales"])
     _save("bunny", scene, viewmats[0], Ks[0], cfg.data.width, cfg.data.height)

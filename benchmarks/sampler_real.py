@@ -131,7 +131,7 @@ def support_stats(proj, W: int, H: int, configs: list[tuple[int, float]], pixels
 
 def op_times(sc: dict, m: int, eps: float, repeats: int) -> dict:
     from nsplat.ops import splat
-    from nsplat.truncated import splat_truncated
+    from nsplat.render_truncated import splat_truncated
 
     W, H = sc["width"], sc["height"]
     N = sc["means"].shape[0]
