@@ -10,13 +10,17 @@ Usage::
     python train.py view --run runs/lego                 # web viewer (nsplat/viewer), --help for options
     python train.py export --run runs/lego --format ply  # or npz
     python train.py --config configs/lego.yaml viewer=true   # live view while training
+    torchrun --nproc_per_node=2 train.py --config configs/lego.yaml   # data-parallel (docs/distributed.md)
 
 User errors (bad config, bad data files, a run folder that cannot be used as asked) print one line on
-stderr and exit with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md).
+stderr and exit with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md). Under
+torchrun, a rank that loses the others (one died, or the ``--dist-timeout`` passed) prints one line and
+exits with code 1.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import shutil
 import sys
@@ -27,6 +31,7 @@ from typing import Any
 import torch
 import yaml
 
+from nsplat import distributed
 from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.data.paths import config_dir, repo_root
@@ -73,13 +78,19 @@ def _parse(argv: list[str]) -> argparse.Namespace:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", type=Path, default=None,
                    help="YAML config: a path, or the name of a shipped config (default: default.yaml)")
-    p.add_argument("--run", type=Path, default=None, help="run folder (default: runs/<config>-<time>)")
+    p.add_argument("--run", "--run-dir", dest="run", type=Path, default=None,
+                   help="run folder (default: runs/<config>-<time>); under torchrun spell it --run-dir "
+                        "(torchrun's own parser takes --run for its --run-path)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --run")
     p.add_argument("--overwrite", action="store_true",
                    help="delete the contents of a non-empty --run folder and start afresh")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     p.add_argument("--seed", type=int, default=None, help="global seed (default: from the config, else 0)")
     p.add_argument("--split", default="test", help="split for `eval`")
+    p.add_argument("--dist-timeout", type=float, default=distributed.DEFAULT_TIMEOUT_S, metavar="SECONDS",
+                   help="under torchrun: seconds a process waits for the others in a collective before the "
+                        "run stops with an error (must exceed rank 0's validation and checkpoint time; "
+                        f"default {distributed.DEFAULT_TIMEOUT_S:g})")
     p.add_argument("overrides", nargs="*", help="config overrides key=value (dotted keys)")
     args = p.parse_intermixed_args(argv)  # options may come after overrides
     args.command = command
@@ -88,6 +99,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
         raise UsageError(f"unexpected argument {bad[0]!r}: overrides are key=value")
     if args.resume and args.overwrite:
         raise UsageError("--resume and --overwrite exclude each other")
+    if not args.dist_timeout > 0:
+        raise UsageError(f"--dist-timeout: expected > 0 seconds, got {args.dist_timeout}")
     return args
 
 
@@ -134,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
     except USER_ERRORS as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except distributed.DistributedError as exc:
+        print(f"distributed error: {_one_line(exc)}", file=sys.stderr)
+        return 1
 
 
 def _config_path(path: Path | None) -> Path:
@@ -171,7 +187,63 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
 def _train(args: argparse.Namespace) -> int:
     task, cfg, _ = _configs(args)
     seed = args.seed if args.seed is not None else int(getattr(cfg, "seed", 0))
-    device = _device(args.device)
+    device = distributed.local_device(_device(args.device))
+    if not distributed.launched():
+        return _train_run(args, task, cfg, seed, device)
+    if not getattr(task, "DISTRIBUTED", False):
+        raise ConfigError(f"task {cfg.task!r} does not run data-parallel; start it with python train.py "
+                          f"(without torchrun); data-parallel tasks: neural")
+    distributed.init_from_env(device, args.dist_timeout)
+    if not distributed.is_main():
+        logging.getLogger().setLevel(logging.WARNING)  # rank 0 reports
+    try:
+        return _train_run(args, task, cfg, seed, device)
+    finally:
+        distributed.shutdown()
+
+
+def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device: torch.device) -> int:
+    """Prepare the run folder and run the task. Under torchrun rank 0 alone touches the folder; the other
+    ranks receive its path (or its one-line error) from rank 0."""
+    main, fresh = distributed.is_main(), not args.resume
+    created, lock = False, None
+    try:
+        if main:
+            created, lock = _lock_run_folder(args)
+    except USER_ERRORS as exc:
+        distributed.broadcast_object(("error", f"rank 0: {_one_line(exc)}"))
+        raise
+    try:
+        if main and fresh:
+            clear_run_folder(args.run)
+            text = yaml.safe_dump(to_dict(cfg), sort_keys=False).encode()
+            atomic_write(args.run / "config.yaml", lambda fh: fh.write(text))
+        kind, value = distributed.broadcast_object(("ok", args.run))
+        if kind == "error":
+            raise RunFolderError(value)
+        args.run = value
+        ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
+        log.info("run folder: %s", args.run)
+        with live.session(args.live_opts) if main else contextlib.nullcontext():
+            task.run(cfg, ctx)
+    except USER_ERRORS:
+        if main:
+            failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
+            if failed_start:  # a failed start leaves no half-made run behind
+                clear_run_folder(args.run)
+            lock.release()
+            if failed_start and created:
+                shutil.rmtree(args.run, ignore_errors=True)
+        raise
+    finally:
+        if lock is not None:
+            lock.release()
+    return 0
+
+
+def _lock_run_folder(args: argparse.Namespace) -> tuple[bool, RunLock]:
+    """Check, create and lock ``args.run`` (default: ``runs/<config>-<time>``); returns (whether the folder
+    was created, the held lock)."""
     if args.run is None:
         stem = (args.config or DEFAULT_CONFIG).stem
         args.run = repo_root() / "runs" / f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -188,27 +260,7 @@ def _train(args: argparse.Namespace) -> int:
     except RunFolderError:
         lock.release()
         raise
-    fresh = not args.resume
-    try:
-        if fresh:
-            clear_run_folder(args.run)
-            text = yaml.safe_dump(to_dict(cfg), sort_keys=False).encode()
-            atomic_write(args.run / "config.yaml", lambda fh: fh.write(text))
-        ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
-        log.info("run folder: %s", args.run)
-        with live.session(args.live_opts):
-            task.run(cfg, ctx)
-    except USER_ERRORS:
-        failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
-        if failed_start:  # a failed start leaves no half-made run behind
-            clear_run_folder(args.run)
-        lock.release()
-        if failed_start and created:
-            shutil.rmtree(args.run, ignore_errors=True)
-        raise
-    finally:
-        lock.release()
-    return 0
+    return created, lock
 
 
 def _post(args: argparse.Namespace) -> int:

@@ -8,6 +8,8 @@
 * :class:`Engine` — the step loop with tqdm, TensorBoard, the live-view hook, timing, atomic checkpoints
   and exact resume. The task supplies its own ``step(step) -> scalars`` (GAN with two optimisers, refine's
   alternating groups and pruning, the fitter's per-view backward): the engine never looks inside.
+  Under torchrun (:mod:`nsplat.distributed`) it starts every rank from rank 0's modules, and only rank 0
+  shows progress, logs, validates, writes images and checkpoints; the step itself reduces its gradients.
 * :func:`op_seed` — the op's seed for one named stream and step; :func:`write_json` — atomic JSON.
 """
 from __future__ import annotations
@@ -24,6 +26,7 @@ from torch import nn
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from nsplat import distributed
 from nsplat.checkpoint import NoCheckpoint, atomic_write, load_checkpoint, save_checkpoint
 from nsplat.config import require_fields
 from nsplat.viewer import live
@@ -167,10 +170,16 @@ class Engine:
             validate: ``f(done, writer) -> scalars`` every ``log.validate`` steps (logged too).
             images: ``f(done, writer)`` every ``log.images`` steps (image summaries).
             view: builds the live viewer's model (the ``viewer=true`` hook, :mod:`nsplat.viewer.live`).
+
+        Under torchrun the hooks, the writer, the bar and the checkpoints are rank 0's only (the other
+        ranks meet it again in the next step's all-reduce, within the process-group timeout).
         """
         lg = self.log
-        writer = SummaryWriter(str(Path(self.run_dir) / "tb"), purge_step=start or None)
-        bar = tqdm(total=self.steps, initial=start, desc=self.desc, dynamic_ncols=True, disable=not lg.progress)
+        main = distributed.is_main()
+        distributed.broadcast_modules(trainables.modules.values())
+        writer = SummaryWriter(str(Path(self.run_dir) / "tb"), purge_step=start or None) if main else None
+        bar = tqdm(total=self.steps, initial=start, desc=self.desc, dynamic_ncols=True,
+                   disable=not (lg.progress and main))
         scalars: dict[str, float] = {}
         try:
             for k in range(start, self.steps):
@@ -181,6 +190,8 @@ class Engine:
                 done, last = k + 1, k + 1 == self.steps
                 bar.update(1)
                 bar.set_postfix({n: f"{v:.4g}" for n, v in list(scalars.items())[:3]})
+                if not main:
+                    continue
                 if view is not None:
                     live.step(done, view)
                 if lg.due(lg.every, done, last):
@@ -196,7 +207,8 @@ class Engine:
                     save_checkpoint(self.run_dir, done, trainables.payload())
         finally:
             bar.close()
-            writer.close()
+            if writer is not None:
+                writer.close()
         return scalars
 
     def resume(self, trainables: Trainables, payload: Mapping[str, Any] | None) -> int:

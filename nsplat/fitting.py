@@ -6,7 +6,9 @@ through the gateway :mod:`nsplat.render`.
 * :func:`point_contributions` — per-point visual contribution (weight × colour) over a set of views.
 * :func:`reposition` — moves non-contributing points next to random visible ones (tangent jitter).
 * :func:`fit` — Adam on an L1 image loss with a step-halving schedule and per-epoch repositioning,
-  run by the engine (:mod:`nsplat.engine`: logging, atomic checkpoints, exact resume).
+  run by the engine (:mod:`nsplat.engine`: logging, atomic checkpoints, exact resume). Data-parallel
+  under torchrun (:mod:`nsplat.distributed`): each rank renders its share of a step's views and of the
+  repositioning's contribution renders; gradients and contributions are summed over ranks.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from typing import Literal
 
 import torch
 
+from nsplat import distributed
 from nsplat.config import require, require_fields
 from nsplat.data.views import PosedViews
 from nsplat.engine import Engine, Hook, LogConfig, Trainables, generator, latest_payload, op_seed
@@ -30,7 +33,8 @@ from nsplat.viewer.runs import cameras_of, surfel_view
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                         cfg: RenderConfig, *, seed: int = 0, chunk: int = 12,
                         measure: Literal["radiance", "weight"] = "radiance",
-                        shading: Literal["lambert", "none"] = "lambert") -> torch.Tensor:
+                        shading: Literal["lambert", "none"] = "lambert", part: tuple[int, int] = (0, 1)
+                        ) -> torch.Tensor:
     """Per-point visual contribution summed over views: ``[N]`` (no gradient).
 
     ``measure="weight"``: ``Σ_views Σ_x w_k(x)`` (total compositing weight). ``measure="radiance"``:
@@ -39,6 +43,10 @@ def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Te
     contributing nothing. Computed as the gradient of the summed one-channel image w.r.t. a unit probe
     (``∂I(x)/∂f_k = w_k(x)``); with the sampled op it is the Horvitz–Thompson estimate (estimator
     ``ht``), zero exactly for points never sampled with non-zero weight.
+
+    ``part=(r, P)`` renders only every ``P``-th block of views starting at block ``r`` (a block is one
+    camera, or ``chunk`` cameras without per-camera shading), with the same seeds as the whole: the ``P``
+    parts sum to the whole.
     """
     with torch.no_grad():
         geo = (scene.means.detach(), scene.normals.detach(), scene.scales.detach(), scene.opacities.detach())
@@ -47,7 +55,7 @@ def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Te
     total = torch.zeros(N, dtype=dtype, device=device)
     per_camera = measure == "radiance" and shading == "lambert"
     step = 1 if per_camera else chunk
-    for s in range(0, viewmats.shape[0], step):
+    for s in range(part[0] * step, viewmats.shape[0], part[1] * step):
         vm, K = viewmats[s:s + step], Ks[s:s + step]
         if measure == "weight":
             colour = torch.ones(N, dtype=dtype, device=device)
@@ -178,22 +186,27 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
         optimizer.zero_grad(set_to_none=True)
         loss_val = 0.0
-        # Backward per view: memory stays at one view's graph; gradients are summed.
-        for j, v in enumerate(idx.tolist()):
+        # Backward per view: memory stays at one view's graph; gradients are summed (over ranks too,
+        # each rank rendering its share of the batch's slots j; a view's seed is its global slot's).
+        for j in distributed.shard(idx.numel()):
+            v = int(idx[j])
             img = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
                                seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
                                background=background)
             loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
             loss.backward()
             loss_val += loss.item()
+        distributed.all_reduce_grads(optimizer)
         optimizer.step()
-        out = {"train/loss": loss_val}
+        out = distributed.all_reduce_scalars({"train/loss": loss_val})
         if s + 1 == steps_per_epoch:
             moved = 0
             if cfg.reposition and (epoch + 1) % cfg.reposition_every == 0:
                 contrib = point_contributions(scene, viewmats, Ks, W, H, render_cfg,
                                               seed=op_seed(seed, "reposition", epoch), chunk=cfg.batch,
-                                              measure=cfg.contribution, shading=cfg.shading)
+                                              measure=cfg.contribution, shading=cfg.shading,
+                                              part=(distributed.rank(), distributed.world_size()))
+                contrib = distributed.all_reduce_sum(contrib)
                 moved = reposition(scene, contrib, cfg.min_weight, cfg.jitter, t.generator, optimizer)
             scheduler.step()
             out.update({"epoch/moved": float(moved), "epoch/lr": optimizer.param_groups[0]["lr"]})

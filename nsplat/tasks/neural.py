@@ -13,6 +13,8 @@ learnable, with their own learning rates, is ``neural.learn``.
 
 Configuration: :mod:`nsplat.tasks.neural_config`; evaluation outputs: :mod:`nsplat.tasks.neural_eval`.
 Both stages run on the engine (:mod:`nsplat.engine`); every render goes through :mod:`nsplat.render`.
+Both run data-parallel under torchrun (:mod:`nsplat.distributed`, docs/distributed.md); rank 0 alone
+writes the run folder and evaluates.
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
@@ -25,11 +27,12 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 from torch import nn
 
+from nsplat import distributed
 from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError
@@ -49,6 +52,9 @@ from nsplat.tasks.neural_config import Config, NeuralConfig
 from nsplat.viewer.runs import cameras_of, neural_view
 
 log = logging.getLogger(__name__)
+
+#: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
+DISTRIBUTED = True
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -121,8 +127,17 @@ class NeuralRenderer(nn.Module):
         return self.scene.cfg.channels + int(self.alpha_input)
 
     def feature_image(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                      seed: int) -> torch.Tensor:
-        """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``."""
+                      seed: int | Sequence[int]) -> torch.Tensor:
+        """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``.
+
+        ``seed``: one op seed for all ``B`` cameras (one op call), or ``B`` seeds, one per camera (one
+        call each: a view's samples then do not depend on which other views share its call).
+        """
+        if not isinstance(seed, int):
+            if len(seed) != viewmats.shape[0]:
+                raise ValueError(f"seed: expected {viewmats.shape[0]} per-camera seeds, got {len(seed)}")
+            return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(sd))
+                              for b, sd in enumerate(seed)])
         s = self.scene
         out = gateway.render(s.means, s.normals, s.scales, s.opacities, s.features, viewmats, Ks, width, height,
                              self.render_cfg, seed=seed, background=self.background)
@@ -130,8 +145,8 @@ class NeuralRenderer(nn.Module):
         return img.permute(0, 3, 1, 2).contiguous()
 
     def forward(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(rgb [B,3,H,W], feature image [B,C(+1),H,W])``."""
+                seed: int | Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rgb [B,3,H,W], feature image [B,C(+1),H,W])``; ``seed`` as in :meth:`feature_image`."""
         cond = self.feature_image(viewmats, Ks, width, height, seed)
         return self.unet(cond, base=cond[:, :3] if self.residual else None), cond
 
@@ -166,7 +181,8 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews) -> SurfelScene
         fit(scene, train, cfg.geometry.optim, cfg.render, ctx.run_dir / "geometry", seed=ctx.seed, resume=ctx.resume,
             log=dataclasses.replace(cfg.geometry.log, progress=cfg.log.progress), background=train.background,
             desc="geometry")
-    scene.save_ply(ctx.run_dir / "geometry.ply")
+    if distributed.is_main():
+        scene.save_ply(ctx.run_dir / "geometry.ply")
     return scene
 
 
@@ -222,31 +238,69 @@ def _nchw(x: torch.Tensor) -> torch.Tensor:
     return x.permute(0, 3, 1, 2).contiguous()
 
 
+def _chunks(share: range, chunk: int | None) -> list[range]:
+    """``share`` cut into consecutive ranges of at most ``chunk`` slots (one range when ``chunk`` is None)."""
+    size = chunk or max(len(share), 1)
+    return [share[i:i + size] for i in range(0, len(share), size)]
+
+
 def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dict[str, float]:
-    """The task contract's ``step``: one stage-2 step (discriminator, then generator) on a random batch."""
+    """The task contract's ``step``: one stage-2 step (discriminator, then generator) on a random batch.
+
+    The batch's ``B`` view slots are split across ranks (:func:`nsplat.distributed.shard`) and each rank's
+    share into chunks of ``n.chunk`` views; slot ``j`` is rendered with op seed ``op_seed(seed, "train",
+    k·batch + j)`` whichever rank and chunk render it. Each chunk's losses are weighted by its share of
+    ``B``, so the gradients summed over chunks and ranks (all-reduced) and the returned scalars are the
+    whole batch's.
+    """
     model, disc = t.modules["model"], t.modules.get("disc")
     idx = torch.randperm(len(train), generator=t.generator)[:n.batch].to(train.images.device)
-    gt = _nchw(train.images[idx])
-    rgb, cond = model(train.viewmats[idx], train.Ks[idx], train.width, train.height,
-                      op_seed(int(t.extra["seed"]), "train", k))
+    B, seed = idx.numel(), int(t.extra["seed"])
+    chunks = _chunks(distributed.shard(B), n.chunk)
+
+    def forward(c: range) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(rgb, cond, gt)`` of the chunk's slots ``c``, ``[b,·,H,W]``."""
+        v = idx[c.start:c.stop]
+        rgb, cond = model(train.viewmats[v], train.Ks[v], train.width, train.height,
+                          [op_seed(seed, "train", k * n.batch + j) for j in c])
+        return rgb, cond, _nchw(train.images[v])
+
+    sums: dict[str, float] = {}  # Σ over chunks of (chunk's share of B) × (chunk's mean)
+
+    def add(name: str, value: float, w: float) -> None:
+        sums[name] = sums.get(name, 0.0) + w * value
+
     use_gan = disc is not None and k >= n.gan.start
-    out: dict[str, float] = {}
+    kept = None  # a single chunk's forward, reused by the generator's step (more chunks: recomputed)
     if use_gan:
         t.optimizers["d"].zero_grad(set_to_none=True)
-        c = cond.detach()
-        d_loss = discriminator_loss(disc(c, gt), disc(c, rgb.detach()), n.gan.mode)
-        d_loss.backward()
+        for c in chunks:
+            w = len(c) / B
+            with torch.set_grad_enabled(len(chunks) == 1):
+                rgb, cond, gt = forward(c)
+            kept = (rgb, cond, gt) if len(chunks) == 1 else None
+            cd = cond.detach()
+            d_loss = discriminator_loss(disc(cd, gt), disc(cd, rgb.detach()), n.gan.mode)
+            (w * d_loss).backward()
+            add("loss/disc", d_loss.item(), w)
+        distributed.all_reduce_grads(t.optimizers["d"])
         t.optimizers["d"].step()
-        out["loss/disc"] = d_loss.item()
     t.optimizers["g"].zero_grad(set_to_none=True)
-    fake = disc(cond, rgb) if use_gan else None
-    losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight, mode=n.gan.mode)
-    losses["total"].backward()
+    for c in chunks:
+        w = len(c) / B
+        rgb, cond, gt = kept if kept is not None else forward(c)
+        fake = disc(cond, rgb) if use_gan else None
+        losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight,
+                                mode=n.gan.mode)
+        (w * losses["total"]).backward()
+        for name, v in losses.items():
+            add(f"loss/{name}", v.item(), w)
+        add("psnr/train_batch", float(psnr(rgb.detach(), gt).mean()), w)
+    distributed.all_reduce_grads(t.optimizers["g"])
     t.optimizers["g"].step()
     for sched in t.schedulers.values():
         sched.step()
-    out.update({f"loss/{name}": v.item() for name, v in losses.items()})
-    out["psnr/train_batch"] = float(psnr(rgb.detach(), gt).mean())
+    out = distributed.all_reduce_scalars(sums)
     out.update({f"lr/{g['name']}": g["lr"] for g in t.optimizers["g"].param_groups})
     return out
 
@@ -322,10 +376,12 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
 
 # ---------------------------------------------------------------------------------------------- commands
 def run(cfg: Config, ctx: RunContext) -> dict:
-    """Train (stage 1, then stage 2; resumable) and evaluate the held-out split."""
+    """Train (stage 1, then stage 2; resumable) and evaluate the held-out split (under torchrun: rank 0
+    evaluates and returns the metrics, the other ranks return ``{}`` after training)."""
     torch.manual_seed(ctx.seed)
     t0 = time.perf_counter()
     train = load_views(cfg, "train", ctx.device)
+    _check_parallel(cfg, len(train))
     val = load_views(cfg, "val", ctx.device) if cfg.log.validate else None
     payload = latest_payload(ctx.run_dir, ctx.resume, "cpu")
     timing = {}
@@ -340,10 +396,25 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     t = build(cfg, scene, ctx.seed)
     start = Engine(ctx.run_dir, cfg.log, cfg.neural.steps).resume(t, payload)
     train_neural(cfg, ctx, t, train, val, start)
+    if not distributed.is_main():
+        return {}
     timing["train_total_s"] = time.perf_counter() - t0
     metrics = evaluate(cfg, ctx, cfg.eval.split, model=t.modules["model"])
     write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
     return metrics
+
+
+def _check_parallel(cfg: Config, views: int) -> None:
+    """Refuse data-parallel settings that cannot give every rank a view or the single-process gradients."""
+    P = distributed.world_size()
+    if P == 1:
+        return
+    if min(cfg.neural.batch, views) < P:
+        raise ConfigError(f"neural.batch: expected at least one training view per process ({P} processes), "
+                          f"got a batch of {min(cfg.neural.batch, views)}")
+    if "batch" in (cfg.neural.unet.norm, cfg.neural.gan.norm):
+        raise ConfigError("neural.unet.norm / neural.gan.norm: batch norm statistics would differ per process; "
+                          "use group, instance or none under torchrun")
 
 
 def load_model(cfg: Config, ctx: RunContext) -> NeuralRenderer:

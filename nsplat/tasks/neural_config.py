@@ -171,7 +171,12 @@ class NeuralConfig:
     """Stage 2: learned point features + U-Net shader (+ PatchGAN).
 
     Attributes:
-        steps: optimisation steps. batch: training views per step.
+        steps: optimisation steps. batch: training views per step (the global batch: under torchrun
+            each of the P processes renders ``batch / P`` of them, docs/distributed.md).
+        chunk: views rendered (and back-propagated) at once by one process; a step's share is rendered
+            in chunks of this many views with gradients accumulated (``null``: the whole share at once).
+            Same gradients within float rounding; with the GAN on and more than one chunk the generator's
+            forward runs twice (once for the discriminator's step, once for its own).
         features: feature channels C per point.
         feature_init_std: std-dev of the random initial features beyond the first three (colour).
         alpha_input: feed the splatted coverage to the U-Net as an extra channel.
@@ -186,6 +191,7 @@ class NeuralConfig:
 
     steps: int = 400
     batch: int = 4
+    chunk: int | None = None
     features: int = 16
     feature_init_std: float = 0.1
     alpha_input: bool = True
@@ -202,6 +208,11 @@ class NeuralConfig:
         for key in ("steps", "batch", "features"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"neural.{key}: expected >= 1, got {getattr(self, key)}")
+        if self.chunk is not None and self.chunk < 1:
+            raise ConfigError(f"neural.chunk: expected >= 1 or null, got {self.chunk}")
+        if self.chunk is not None and self.chunk < self.batch and "batch" in (self.unet.norm, self.gan.norm):
+            raise ConfigError("neural.chunk: batch norm statistics would depend on the chunks; use norm group, "
+                              "instance or none with chunks smaller than neural.batch")
         if self.residual and self.features < 3:
             raise ConfigError(f"neural.residual: needs neural.features >= 3, got {self.features}")
         bad = [a for a in self.learn if a not in ATTRIBUTES]
