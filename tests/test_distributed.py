@@ -159,12 +159,11 @@ def test_shard_splits_every_slot_once():
             assert max(map(len, parts)) - min(map(len, parts)) <= 1
 
 
-def _step_grads(cfg: Config, train, chunk: int | None, run_dir: Path) -> tuple[dict[str, float], list, list]:
+def _step_grads(cfg: Config, train, geo, chunk: int | None) -> tuple[dict[str, float], list, list]:
     """Scalars and the gradients each optimiser stepped with, of step 0 with ``neural.chunk = chunk``."""
     cfg.neural.chunk = chunk
     torch.manual_seed(0)
-    ctx = RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=0)
-    t = build(cfg, neural_scene_from(cfg, fit_geometry(cfg, ctx, train), seed=0), seed=0)
+    t = build(cfg, neural_scene_from(cfg, geo, seed=0), seed=0)
     grads: dict[str, list[torch.Tensor]] = {}
     for key, opt in t.optimizers.items():
         opt.register_step_pre_hook(lambda o, *_, key=key: grads.__setitem__(
@@ -179,9 +178,10 @@ def test_chunked_step_has_the_whole_batch_gradients(config, tmp_path):
     raw["geometry"]["optim"]["epochs"] = 0
     cfg = load_config(Config, raw)
     train = load_views(cfg, "train", torch.device("cpu"))
-    whole = _step_grads(cfg, train, None, tmp_path)
+    geo = fit_geometry(cfg, RunContext(run_dir=tmp_path, device=torch.device("cpu")), train)
+    whole = _step_grads(cfg, train, geo, None)
     for chunk in (1, 2):  # 3 chunks of one view; chunks of 2 and 1 views
-        chunked = _step_grads(cfg, train, chunk, tmp_path)
+        chunked = _step_grads(cfg, train, geo, chunk)
         assert chunked[0].keys() == whole[0].keys()
         for name, value in whole[0].items():
             assert chunked[0][name] == pytest.approx(value, rel=1e-5), name
