@@ -196,8 +196,3 @@ def broadcast_object(obj: Any) -> Any:
     _collective("broadcast", lambda: dist.broadcast_object_list(box, src=0))
     return box[0]
 
-
-def barrier() -> None:
-    """Wait until every rank has arrived (no-op without a process group)."""
-    if active():
-        _collective("barrier", dist.barrier)
