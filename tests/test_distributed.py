@@ -1,8 +1,9 @@
 """Data-parallel training (``torchrun``, gloo, 2 CPU processes) on a tiny procedural scene, end to end through
 ``train.py``: 2 ranks × half the batch train the same model as 1 rank with the whole batch; a rank killed
 mid-run stops the other with the distributed error within the timeout, leaves a complete checkpoint, and a
-2-rank resume from it ends bit for bit where the uninterrupted 2-rank run ended. In process: a step rendered
-in camera chunks has the gradients of the step rendered at once.
+2-rank resume from it ends bit for bit where the uninterrupted 2-rank run ended; a 1-process run resumed
+with 2 processes ends where the 1-process run ended. In process: a step rendered in camera chunks has the
+gradients of the step rendered at once.
 
 Ranks are started either by ``torchrun`` itself or, where the test must kill one rank, as plain processes
 with the environment torchrun gives them (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``).
@@ -10,6 +11,7 @@ with the environment torchrun gives them (``RANK``, ``WORLD_SIZE``, ``MASTER_ADD
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -123,6 +125,17 @@ def test_two_ranks_train_the_one_rank_model(config, two_ranks, tmp_path):
     assert files == {p.relative_to(two_ranks) for p in two_ranks.rglob("*") if "tb" not in p.parts}
     assert len(list((two_ranks / "tb").iterdir())) == 1
     assert (two_ranks / "eval_test" / "metrics.json").is_file()
+
+    # Resuming the 1-process run's step-10 checkpoint with 2 processes ends where the 1-process run ended.
+    cut = tmp_path / "cut"
+    shutil.copytree(one, cut)
+    (cut / "checkpoints" / "ckpt-00000012.pt").unlink()
+    (cut / "checkpoints" / "latest").write_text("ckpt-00000010.pt")
+    results = _finish(_ranks("--run", str(cut), "--resume"))
+    assert all(code == 0 for code, _ in results), results[0][1][-3000:] + results[1][1][-3000:]
+    a, b = _modules(one), _modules(cut)
+    for name in a:
+        torch.testing.assert_close(b[name], a[name], rtol=1e-5, atol=1e-5, msg=name)
 
 
 def test_killed_rank_stops_the_run_and_resume_matches(config, two_ranks, tmp_path):
