@@ -39,7 +39,7 @@ from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
                            config_differences, lock_holder)
-from nsplat.tasks import get_task
+from nsplat.tasks import TASKS, get_task
 from nsplat.viewer import live
 
 DEFAULT_CONFIG = config_dir() / "default.yaml"
@@ -191,8 +191,9 @@ def _train(args: argparse.Namespace) -> int:
     if not distributed.launched():
         return _train_run(args, task, cfg, seed, device)
     if not getattr(task, "DISTRIBUTED", False):
+        parallel = [name for name in TASKS if getattr(get_task(name), "DISTRIBUTED", False)]
         raise ConfigError(f"task {cfg.task!r} does not run data-parallel; start it with python train.py "
-                          f"(without torchrun); data-parallel tasks: neural")
+                          f"(without torchrun); data-parallel tasks: {', '.join(sorted(parallel))}")
     distributed.init_from_env(device, args.dist_timeout)
     if not distributed.is_main():
         logging.getLogger().setLevel(logging.WARNING)  # rank 0 reports

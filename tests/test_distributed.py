@@ -204,3 +204,12 @@ def test_chunked_step_has_the_whole_batch_gradients(config, tmp_path):
             scale = max(float(g.abs().max()) for g in want)
             for g_got, g_want in zip(got, want):
                 torch.testing.assert_close(g_got, g_want, rtol=1e-4, atol=1e-6 * scale)
+
+
+def test_tasks_without_data_parallel_refuse_torchrun(monkeypatch, tmp_path, capsys):
+    from nsplat.cli import main
+
+    monkeypatch.setenv("WORLD_SIZE", "2")  # what torchrun sets; refused before joining any process group
+    assert main(["--config", "demo.yaml", "--run", str(tmp_path / "run")]) == 2
+    assert "task 'demo' does not run data-parallel" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()

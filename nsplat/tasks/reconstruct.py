@@ -3,6 +3,7 @@
 Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`). Init: a Fibonacci sphere
 enclosing the object. Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
 definitions, see :mod:`nsplat.metrics`), ``reconstruction.ply``, ``renders/*.png`` (GT | result).
+Data-parallel under torchrun (the fitter's, docs/distributed.md); rank 0 writes the outputs.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from nsplat import fitting
+from nsplat import distributed, fitting
 from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require_fields
@@ -33,6 +34,9 @@ from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.shading import lambert
 
 log = logging.getLogger(__name__)
+
+#: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
+DISTRIBUTED = True
 
 
 @dataclasses.dataclass
@@ -118,6 +122,8 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
 
     scalars = fit(scene, views, cfg.optim, cfg.render, ctx.run_dir, log=cfg.log, seed=ctx.seed, resume=ctx.resume,
                   validate=validate, desc="reconstruct")
+    if not distributed.is_main():  # under torchrun rank 0 writes the outputs
+        return {}
     metrics = _finish(cfg, ctx, pc, scene)
     metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("train/loss"),
                    fit_seconds=time.time() - t0)
