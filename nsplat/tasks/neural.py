@@ -16,8 +16,8 @@ Both stages run on the engine (:mod:`nsplat.engine`); every render goes through 
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
-and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs) and
-``orbit.mp4``.
+and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs),
+``eval_geometry.json`` (stage 1 alone on val and the held-out split) and ``orbit.mp4``.
 """
 from __future__ import annotations
 
@@ -240,7 +240,8 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
         out["loss/disc"] = d_loss.item()
     t.optimizers["g"].zero_grad(set_to_none=True)
     fake = disc(cond, rgb) if use_gan else None
-    losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight, mode=n.gan.mode)
+    losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight,
+                            ssim_weight=n.ssim_weight, mode=n.gan.mode)
     losses["total"].backward()
     t.optimizers["g"].step()
     for sched in t.schedulers.values():
@@ -342,6 +343,12 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     train_neural(cfg, ctx, t, train, val, start)
     timing["train_total_s"] = time.perf_counter() - t0
     metrics = evaluate(cfg, ctx, cfg.eval.split, model=t.modules["model"])
+    if cfg.eval.geometry:
+        from nsplat.tasks.neural_eval import evaluate_geometry
+
+        splits = {"val": val} if val is not None else {}
+        splits[cfg.eval.split] = load_views(cfg, cfg.eval.split, ctx.device)
+        evaluate_geometry(cfg, ctx, splits, eval_seed(cfg))
     write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
     return metrics
 
