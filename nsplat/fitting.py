@@ -5,10 +5,12 @@ through the gateway :mod:`nsplat.render`.
 
 * :func:`point_contributions` — per-point visual contribution (weight × colour) over a set of views.
 * :func:`reposition` — moves non-contributing points next to random visible ones (tangent jitter).
-* :func:`fit` — Adam on an L1 image loss with a step-halving schedule and per-epoch repositioning,
-  run by the engine (:mod:`nsplat.engine`: logging, atomic checkpoints, exact resume). Data-parallel
+* :func:`fit` — Adam on an L1 image loss with a step-halving schedule, per-epoch repositioning and
+  optional adaptive density control (:mod:`nsplat.densify`), run by the engine (:mod:`nsplat.engine`:
+  logging, atomic checkpoints, exact resume — also across changes of the point count). Data-parallel
   under torchrun (:mod:`nsplat.distributed`): each rank renders its share of a step's views and of the
-  repositioning's contribution renders; gradients and contributions are summed over ranks.
+  repositioning's contribution renders; gradients, contributions and densification statistics are
+  summed over ranks, so every rank takes the same decisions.
 """
 from __future__ import annotations
 
@@ -22,7 +24,8 @@ import torch
 from nsplat import distributed
 from nsplat.config import require, require_fields
 from nsplat.data.views import PosedViews
-from nsplat.engine import Engine, Hook, LogConfig, Trainables, generator, latest_payload, op_seed
+from nsplat.densify import DensifyConfig, DensityStats, densify
+from nsplat.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
 from nsplat.ops import tangent_frame
 from nsplat.render import RenderConfig, render, render_views
 from nsplat.scene import ATTRIBUTES, SurfelScene
@@ -120,6 +123,7 @@ class FitConfig:
             colour, the paper's "visual contribution", default) or ``weight``. min_weight: a point contributes when
             its contribution summed over all views is at least this. jitter: tangent offset of a moved
             point, in units of its source point's scale.
+        densify: adaptive density control (:class:`nsplat.densify.DensifyConfig`; off by default).
     """
 
     epochs: int = 300
@@ -134,6 +138,7 @@ class FitConfig:
     contribution: Literal["radiance", "weight"] = "radiance"
     min_weight: float = 0.02
     jitter: float = 1.0
+    densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -147,11 +152,17 @@ class FitConfig:
 
 
 def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0) -> Trainables:
-    """Module ``scene``, Adam ``fit`` over its learnable attributes, the epoch scheduler and the generator
-    of the repositioning draws."""
+    """Module ``scene`` (and ``density``, the :class:`~nsplat.densify.DensityStats`, when densification is
+    on), Adam ``fit`` over its learnable attributes, the epoch scheduler and the generator of the
+    repositioning and densification draws."""
+    if cfg.densify.enabled and "means" not in scene.cfg.learn:
+        raise ValueError("densify.enabled: needs learnable means (the growth criterion is their gradient)")
     optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas))
     scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.milestones(), gamma=cfg.lr_gamma)
-    return Trainables(modules={"scene": scene}, optimizers={"fit": optimizer}, schedulers={"fit": scheduler},
+    modules: dict[str, torch.nn.Module] = {"scene": scene}
+    if cfg.densify.enabled:
+        modules["density"] = DensityStats(scene.num_points, scene.means.dtype, scene.means.device)
+    return Trainables(modules=modules, optimizers={"fit": optimizer}, schedulers={"fit": scheduler},
                       generator=torch.Generator().manual_seed(seed))
 
 
@@ -174,11 +185,16 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     """
     V, W, H = len(views), views.width, views.height
     images, viewmats, Ks = views.images, views.viewmats, views.Ks
+    payload = latest_payload(Path(run_dir), resume)
+    rows = checkpoint_rows(payload, "scene", "_means")
+    if rows is not None and rows != scene.num_points:  # densified before the checkpoint
+        scene.resize_(rows)
     t = build(scene, cfg, seed)
     optimizer, scheduler = t.optimizers["fit"], t.schedulers["fit"]
+    stats = t.modules.get("density")
     steps_per_epoch = math.ceil(V / cfg.batch)
     engine = Engine(Path(run_dir), log or LogConfig(), cfg.epochs * steps_per_epoch, desc=desc)
-    start = engine.resume(t, latest_payload(Path(run_dir), resume))
+    start = engine.resume(t, payload)
 
     def step(k: int) -> dict[str, float]:
         epoch, s = divmod(k, steps_per_epoch)
@@ -186,6 +202,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
         optimizer.zero_grad(set_to_none=True)
         loss_val = 0.0
+        local = None if stats is None else DensityStats(scene.num_points, stats.grad.dtype, stats.grad.device)
         # Backward per view: memory stays at one view's graph; gradients are summed (over ranks too,
         # each rank rendering its share of the batch's slots j; a view's seed is its global slot's).
         for j in distributed.shard(idx.numel()):
@@ -194,9 +211,16 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
                                seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
                                background=background)
             loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
+            means = scene.tensor("means")
+            before = None if local is None or means.grad is None else means.grad.clone()
             loss.backward()
             loss_val += loss.item()
+            if local is not None:  # this view's gradient of its own (pixel-mean) loss
+                g = means.grad if before is None else means.grad - before
+                local.observe(g * idx.numel(), means.detach(), viewmats[v], Ks[v], W * H)
         distributed.all_reduce_grads(optimizer)
+        if stats is not None:  # every rank holds the whole batch's statistics (and checkpoints them)
+            stats.add_(distributed.all_reduce_sum(local.grad), distributed.all_reduce_sum(local.views))
         optimizer.step()
         out = distributed.all_reduce_scalars({"train/loss": loss_val})
         if s + 1 == steps_per_epoch:
@@ -208,6 +232,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
                                               part=(distributed.rank(), distributed.world_size()))
                 contrib = distributed.all_reduce_sum(contrib)
                 moved = reposition(scene, contrib, cfg.min_weight, cfg.jitter, t.generator, optimizer)
+            if stats is not None and cfg.densify.due(epoch + 1):
+                counts = densify(scene, stats, cfg.densify, t.generator, [optimizer])
+                out.update({f"densify/{k}": v for k, v in counts.items()})
             scheduler.step()
             out.update({"epoch/moved": float(moved), "epoch/lr": optimizer.param_groups[0]["lr"]})
         return out

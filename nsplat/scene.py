@@ -29,7 +29,7 @@ from torch import nn
 from nsplat.config import ConfigError
 from nsplat.data.pointclouds import check_ply_header
 from nsplat.errors import DataError
-from nsplat.points import reset_rows, select_rows
+from nsplat.points import gather_rows, reset_rows, select_rows
 
 log = logging.getLogger(__name__)
 
@@ -263,6 +263,36 @@ class SurfelScene(nn.Module):
         new.load_state_dict({k: v[keep] for k, v in self.state_dict().items()})
         select_rows(optimizers, {self.tensor(n): new.tensor(n) for n in self.cfg.learn}, keep)
         return new
+
+    @torch.no_grad()
+    def gather_(self, index: torch.Tensor, optimizers: Iterable[torch.optim.Optimizer] = (),
+                fresh: torch.Tensor | None = None) -> None:
+        """Rebuild the point set in place: new row ``i`` is old row ``index[i]`` (repeats allowed).
+
+        Learnable tensors become new ``nn.Parameter`` objects; ``optimizers`` are moved to them with
+        their per-row state gathered and zeroed on the ``fresh`` rows (:func:`nsplat.points.gather_rows`).
+
+        Args:
+            index: ``[N']`` long old-row indices. optimizers: optimisers holding this scene's parameters.
+            fresh: ``[N']`` bool, new rows whose optimiser moments restart from zero.
+        """
+        index = torch.as_tensor(index, dtype=torch.long, device=self._means.device)
+        replaced = {}
+        for name in self.cfg.allocated():
+            old = self.tensor(name)
+            data = old.detach()[index].clone()
+            if isinstance(old, nn.Parameter):
+                new = nn.Parameter(data, requires_grad=old.requires_grad)
+                setattr(self, _STORAGE[name], new)
+                replaced[old] = new
+            else:
+                setattr(self, _STORAGE[name], data)
+        gather_rows(optimizers, replaced, index, fresh)
+
+    def resize_(self, num_points: int) -> None:
+        """Resize to ``num_points`` rows (contents unspecified; e.g. before loading a checkpoint of a
+        densified scene). Call before any optimiser is built over the scene."""
+        self.gather_(torch.zeros(num_points, dtype=torch.long, device=self._means.device))
 
     # ------------------------------------------------------------------ optimiser
     def param_groups(self, lrs: Mapping[str, float]) -> list[dict]:

@@ -36,12 +36,14 @@ TIMEOUT_S = 20  # --dist-timeout of the killed run
 def _tiny(cache: Path) -> dict:
     """24 px, 6/2/2 views, ~100 points, 2-level networks without normalisation layers (a bias before a
     norm layer has a gradient of pure rounding noise, which Adam blows up to full steps: states of two
-    reduction orders could not be compared), repositioning on, batch 4 (2 per rank), 12 steps."""
+    reduction orders could not be compared), repositioning and densification on, batch 4 (2 per rank),
+    12 steps."""
     return {
         "task": "neural", "seed": 0,
         "data": {"procedural": {"seed": 1, "resolution": 24, "views": [6, 2, 2], "objects": 2,
                                 "cache_dir": str(cache)}},
-        "geometry": {"grid": 24, "optim": {"epochs": 2, "batch": 3, "reposition": True, "reposition_every": 1}},
+        "geometry": {"grid": 24, "optim": {"epochs": 2, "batch": 3, "reposition": True, "reposition_every": 1,
+                                           "densify": {"enabled": True, "grad_threshold": 0.0, "max_growth": 0.2}}},
         "render": {"samples": 16},
         "neural": {"steps": 12, "batch": 4, "features": 4, "unet": {"depth": 2, "width": 8, "norm": "none"},
                    "gan": {"width": 8, "layers": 2, "norm": "none"}},

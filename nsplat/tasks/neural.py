@@ -18,8 +18,8 @@ writes the run folder and evaluates.
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
-and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs) and
-``orbit.mp4``.
+and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs),
+``eval_geometry.json`` (stage 1 alone on val and the held-out split) and ``orbit.mp4``.
 """
 from __future__ import annotations
 
@@ -291,7 +291,7 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
         rgb, cond, gt = kept if kept is not None else forward(c)
         fake = disc(cond, rgb) if use_gan else None
         losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight,
-                                mode=n.gan.mode)
+                                ssim_weight=n.ssim_weight, mode=n.gan.mode)
         (w * losses["total"]).backward()
         for name, v in losses.items():
             add(f"loss/{name}", v.item(), w)
@@ -400,6 +400,12 @@ def run(cfg: Config, ctx: RunContext) -> dict:
         return {}
     timing["train_total_s"] = time.perf_counter() - t0
     metrics = evaluate(cfg, ctx, cfg.eval.split, model=t.modules["model"])
+    if cfg.eval.geometry:
+        from nsplat.tasks.neural_eval import evaluate_geometry
+
+        splits = {"val": val} if val is not None else {}
+        splits[cfg.eval.split] = load_views(cfg, cfg.eval.split, ctx.device)
+        evaluate_geometry(cfg, ctx, splits, eval_seed(cfg))
     write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
     return metrics
 

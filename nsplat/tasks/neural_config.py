@@ -186,6 +186,7 @@ class NeuralConfig:
         learn: learnable point attributes → learning rate (others are frozen buffers).
         lr: U-Net learning rate. betas: its Adam decay rates.
         lr_final: every learning rate decays exponentially to this fraction at the last step.
+        ssim_weight: share of D-SSIM in the image loss, ``(1 − s)·L1 + s·D-SSIM`` (0: L1 only).
         unet, gan: the networks.
     """
 
@@ -201,6 +202,7 @@ class NeuralConfig:
     lr: float = 1e-3
     betas: tuple[float, float] = (0.5, 0.999)
     lr_final: float = 0.1
+    ssim_weight: float = 0.0
     unet: UNetConfig = dataclasses.field(default_factory=UNetConfig)
     gan: GanConfig = dataclasses.field(default_factory=GanConfig)
 
@@ -218,6 +220,8 @@ class NeuralConfig:
         bad = [a for a in self.learn if a not in ATTRIBUTES]
         if bad:
             raise ConfigError(f"neural.learn: unknown attribute(s) {bad}; expected a subset of {list(ATTRIBUTES)}")
+        if not 0.0 <= self.ssim_weight <= 1.0:
+            raise ConfigError(f"neural.ssim_weight: expected a value in [0, 1], got {self.ssim_weight}")
         if not 0.0 < self.lr_final <= 1.0:
             raise ConfigError(f"neural.lr_final: expected a fraction in (0, 1], got {self.lr_final}")
 
@@ -233,6 +237,8 @@ class EvalConfig:
         render: overrides of the top-level ``render`` section for every evaluation render (held-out
             metrics, training-time validation, the orbit video), e.g. ``eval.render: {samples: 80}``;
             empty (default): evaluate with the training settings. See :meth:`Config.eval_render`.
+        geometry: also evaluate stage 1 alone (``geometry.ply`` rendered as RGB surfels) on val and
+            ``split`` after training (``eval_geometry.json``).
     """
 
     split: Literal["train", "val", "test"] = "test"
@@ -241,6 +247,7 @@ class EvalConfig:
     orbit_frames: int = 60
     fps: int = 20
     render: dict[str, Any] = dataclasses.field(default_factory=dict)
+    geometry: bool = True
 
 
 @dataclasses.dataclass

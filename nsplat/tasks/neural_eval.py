@@ -16,7 +16,9 @@ from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
 from nsplat.metrics_image import lpips, lpips_status, psnr, ssim
 from nsplat.runctx import RunContext
-from nsplat.tasks.neural import NeuralRenderer, render_split
+from nsplat.render import render_views
+from nsplat.scene import SurfelScene
+from nsplat.tasks.neural import NeuralRenderer, geometry_scene_config, render_split
 from nsplat.tasks.neural_config import Config
 
 log = logging.getLogger("nsplat.tasks.neural")
@@ -70,6 +72,24 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
              else f"{metrics['lpips']['mean']:.4f}")
     log.info("metrics written to %s", out_dir / "metrics.json")
     return metrics
+
+
+@torch.no_grad()
+def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews], seed: int) -> dict:
+    """Stage 1 alone, the point-based baseline the U-Net must beat: the run's ``geometry.ply`` (RGB
+    surfels) rendered by the op (evaluation settings) into each split of ``splits``; PSNR/SSIM written
+    to ``eval_geometry.json`` and returned as ``{split: {psnr, ssim}}``."""
+    scene = SurfelScene.load_ply(ctx.run_dir / "geometry.ply", geometry_scene_config(cfg), device=ctx.device)
+    out: dict = {"points": scene.num_points}
+    for split, views in splits.items():
+        rgbs = [render_views(scene, views.viewmats[s:s + 4], views.Ks[s:s + 4], views.width, views.height,
+                             cfg.eval_render(), seed=seed + s, shading="none", background=views.background)
+                for s in range(0, len(views), 4)]
+        rgb = torch.cat(rgbs).clamp(0, 1)
+        out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}
+        log.info("stage 1 alone, %s: PSNR %.2f dB", split, out[split]["psnr"]["mean"])
+    write_json(ctx.run_dir / "eval_geometry.json", out)
+    return out
 
 
 def orbit_cameras(train: PosedViews, frames: int) -> torch.Tensor:

@@ -1,0 +1,140 @@
+"""Adaptive density control: the point set changes, the optimiser state follows it row by row, the
+screen-space gradient statistic is in pixels, and a resumed fit across densification events equals an
+uninterrupted one."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from nsplat.cameras import intrinsics_from_fov
+from nsplat.densify import DensifyConfig, DensityStats, densify
+from nsplat.engine import LogConfig
+from nsplat.fitting import FitConfig, fit
+from nsplat.render import RenderConfig
+from nsplat.scene import SceneConfig, SurfelScene
+from tests.test_reconstruct import _lr, _tiny_problem, _views
+
+
+def _scene(n: int = 6) -> SurfelScene:
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(n, 3, generator=g)
+    normals = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    scales = torch.tensor([0.01, 0.05, 0.01, 0.05, 0.01, 0.05])[:n, None].expand(n, 2).contiguous()
+    cfg = SceneConfig(learn=["means", "normals", "scales", "opacities", "features"], opacity=None)
+    return SurfelScene.from_points(cfg, means, normals, scales=scales, opacities=torch.linspace(0.01, 0.9, n),
+                                   features=torch.rand(n, 3, generator=g))
+
+
+def _stepped_adam(scene: SurfelScene) -> torch.optim.Adam:
+    opt = torch.optim.Adam(scene.param_groups({"default": 0.01}))
+    loss = sum((p * torch.arange(1, p.numel() + 1).reshape(p.shape)).sum() for p in scene.parameters())
+    loss.backward()
+    opt.step()
+    return opt
+
+
+def test_densify_splits_clones_prunes_and_gathers_optimizer_state():
+    scene = _scene()
+    opt = _stepped_adam(scene)
+    old = {n: scene.tensor(n).detach().clone() for n in scene.cfg.learn}
+    old_state = {n: {k: v.clone() for k, v in opt.state[scene.tensor(n)].items()} for n in scene.cfg.learn}
+    stats = DensityStats(6)
+    stats.grad.copy_(torch.tensor([0.0, 5.0, 3.0, 0.0, 4.0, 2.0]))
+    stats.views.fill_(1.0)
+    cfg = DensifyConfig(enabled=True, grad_threshold=1.0, split_size=0.03, children=2, max_growth=1.0,
+                        prune_opacity=0.05)
+    counts = densify(scene, stats, cfg, torch.Generator().manual_seed(0), [opt])
+    # Point 0: opacity 0.01 < 0.05, pruned. Grow 1 (big: split), 2 (small: clone), 4 (small), 5 (big).
+    assert counts == {"split": 2.0, "cloned": 2.0, "pruned": 1.0, "points": 5 - 2 + 2 + 4}
+    stay, clones, children = [2, 3, 4], [2, 4], [1, 1, 5, 5]
+    index = torch.tensor(stay + clones + children)
+    assert scene.num_points == 9 and stats.grad.shape == (9,) and float(stats.grad.abs().sum()) == 0
+    for name in scene.cfg.learn:
+        p = scene.tensor(name)
+        assert any(p is q for g in opt.param_groups for q in g["params"]), name
+        st = opt.state[p]
+        for key in ("exp_avg", "exp_avg_sq"):
+            assert st[key].shape == p.shape
+            assert torch.equal(st[key][:3], old_state[name][key][index[:3]]), (name, key)
+            assert float(st[key][3:].abs().sum()) == 0, (name, key)
+        assert torch.equal(st["step"], old_state[name]["step"])
+    assert torch.equal(scene.tensor("means")[:3], old["means"][index[:3]])
+    # Split children are smaller by `shrink`; clones keep their size and stay within a few std-devs.
+    log_s = scene.tensor("scales").detach()
+    assert torch.allclose(log_s[5:], old["scales"][index[5:]] - math.log(1.6))
+    assert torch.equal(log_s[3:5], old["scales"][index[3:5]])
+    offset = (scene.means[3:] - old["means"][index[3:]]).detach().norm(dim=-1)
+    assert float(offset.min()) > 0 and float(offset.max()) < 6 * 0.05, offset.detach()
+    # The optimiser steps over the new parameters.
+    loss = sum(p.square().sum() for p in scene.parameters())
+    loss.backward()
+    opt.step()
+
+
+def test_densify_respects_growth_caps_highest_gradients_first():
+    scene = _scene()
+    stats = DensityStats(6)
+    stats.grad.copy_(torch.tensor([1.0, 6.0, 5.0, 4.0, 3.0, 2.0]) * 10)
+    stats.views.fill_(10.0)  # averages 1 … 6
+    cfg = DensifyConfig(enabled=True, grad_threshold=0.5, split_size=1.0, max_growth=0.5, prune_opacity=0.0)
+    counts = densify(scene, stats, cfg, torch.Generator().manual_seed(0))
+    assert counts["cloned"] == 3 and counts["points"] == 9  # 3 = 50 % of 6: points 1, 2, 3
+    cfg.max_points = 7
+    scene, stats = _scene(), DensityStats(6)
+    stats.grad.copy_(torch.tensor([1.0, 6.0, 5.0, 4.0, 3.0, 2.0]))
+    stats.views.fill_(1.0)
+    assert densify(scene, stats, cfg, torch.Generator().manual_seed(0))["points"] == 7
+
+
+def test_screen_space_gradient_is_in_pixels():
+    # A camera at the origin looking down +z (f = 100 px); a point at depth 4. Moving it by one pixel in x
+    # moves it 4/100 world units, so a world gradient of g along x is g·4/100 per pixel.
+    stats = DensityStats(2)
+    means = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0]])
+    grad = torch.tensor([[1.0, 0.0, 7.0], [0.0, 0.0, 0.0]])  # the depth component does not count
+    K = torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    stats.observe(grad, means, torch.eye(4), K, pixels=1)
+    assert torch.allclose(stats.grad, torch.tensor([0.04, 0.0])) and torch.equal(stats.views, torch.tensor([1.0, 0]))
+    stats.observe(grad, means, torch.eye(4), K, pixels=1)
+    assert torch.allclose(stats.average(), torch.tensor([0.04, 0.0]))
+
+
+def test_densify_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="shrink"):
+        DensifyConfig(shrink=0.0)
+    with pytest.raises(ValueError, match="children"):
+        DensifyConfig(children=0)
+    cfg = DensifyConfig(enabled=True, start=2, every=2, stop=6)
+    assert [e for e in range(1, 10) if cfg.due(e)] == [2, 4, 6]
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def test_fit_with_densification_resumes_exactly(tmp_path):
+    dens = DensifyConfig(enabled=True, start=1, every=1, grad_threshold=0.0, split_size=0.05, max_growth=0.25)
+    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition=False, densify=dens)
+    rcfg = RenderConfig(renderer="splat")
+    lg = LogConfig(checkpoint=2, validate=1, progress=False)  # 2 steps per epoch: a checkpoint per epoch
+    _, images, vm, Ks, straight = _tiny_problem(n=120, views=6, res=16)
+    views = _views(images, vm, Ks)
+    fit(straight, views, cfg, rcfg, tmp_path / "a", log=lg, seed=3)
+    assert straight.num_points > 120 * 1.5  # three events of up to +25 % each
+
+    def stop_at(step: int, writer) -> dict[str, float]:
+        if step == 6:  # killed after the last epoch's event, before its checkpoint
+            raise _Interrupt
+        return {}
+
+    _, _, _, _, killed = _tiny_problem(n=120, views=6, res=16)
+    with pytest.raises(_Interrupt):
+        fit(killed, views, cfg, rcfg, tmp_path / "b", log=lg, seed=3, validate=stop_at)
+    torch.manual_seed(999)  # a new process: global RNG state differs
+    _, _, _, _, resumed = _tiny_problem(n=120, views=6, res=16)
+    fit(resumed, views, cfg, rcfg, tmp_path / "b", log=lg, seed=3, resume=True)
+    assert resumed.num_points == straight.num_points
+    for name, t in straight.state_dict().items():
+        assert torch.equal(t, resumed.state_dict()[name]), name
