@@ -36,6 +36,21 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, data_range: float = 1.0) -> t
     return 10.0 * torch.log10(data_range**2 / mse.clamp_min(1e-20))
 
 
+def silhouette_band(masks: torch.Tensor, width: int = 3) -> torch.Tensor:
+    """Pixels within ``width`` px of a silhouette edge: ``[B,H,W]`` bool from coverage ``masks [B,H,W]``
+    (thresholded at 0.5; dilation minus erosion with a square kernel, kornia.morphology)."""
+    m = (masks > 0.5).float()[:, None]
+    kernel = torch.ones(2 * width + 1, 2 * width + 1, dtype=m.dtype, device=m.device)
+    band = kornia.morphology.dilation(m, kernel) - kornia.morphology.erosion(m, kernel)
+    return band[:, 0] > 0.5
+
+
+def error_share(pred: torch.Tensor, target: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
+    """Per-image share of the squared error inside ``region [B,H,W]`` (bool), ``[B]`` in [0, 1]."""
+    se = ((pred.double() - target.double()) ** 2).sum(-1)
+    return (se * region).flatten(1).sum(1) / se.flatten(1).sum(1).clamp_min(1e-20)
+
+
 def ssim(pred: torch.Tensor, target: torch.Tensor, *, channels_last: bool = True) -> torch.Tensor:
     """Per-image SSIM ``[B]`` (Gaussian 11×11 window, σ 1.5, data range 1, valid region)."""
     if pred.shape != target.shape:

@@ -64,3 +64,17 @@ def test_bad_input_names_argument(bad):
         point_cloud_distances(bad, GT)
     with pytest.raises(ValueError, match="gt: bounding-box"):
         point_cloud_distances(GT, np.zeros((4, 3)))
+
+
+def test_silhouette_band_and_error_share_by_hand():
+    from nsplat.metrics_image import error_share, silhouette_band
+
+    masks = torch.zeros(1, 16, 16)
+    masks[:, 4:12, 4:12] = 1.0  # an 8×8 square
+    band = silhouette_band(masks, width=2)
+    # Rows/columns 2..13 (dilated by 2) minus 6..9 (eroded by 2): 144 − 16 pixels.
+    assert int(band.sum()) == 12 * 12 - 4 * 4
+    assert bool(band[0, 2, 2]) and not bool(band[0, 7, 7]) and not bool(band[0, 1, 1])
+    target = masks[..., None].expand(1, 16, 16, 3)
+    share = error_share(torch.zeros_like(target), target, band)
+    assert torch.allclose(share, torch.tensor([48 / 64], dtype=torch.float64))  # 48 of the square's 64 px

@@ -14,7 +14,7 @@ import torch
 from nsplat.cameras import look_at
 from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
-from nsplat.metrics_image import lpips, lpips_status, psnr, ssim
+from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhouette_band, ssim
 from nsplat.runctx import RunContext
 from nsplat.render import render_views
 from nsplat.scene import SurfelScene
@@ -31,6 +31,16 @@ def _stats(x: torch.Tensor) -> dict[str, float]:
 
 def _png(x: torch.Tensor) -> np.ndarray:
     return (x.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def _band(rgb: torch.Tensor, views: PosedViews, width: int = 3) -> dict | None:
+    """Where the error sits: the share of pixels within ``width`` px of a silhouette edge and their share
+    of the squared error (``None`` without coverage masks)."""
+    if views.masks is None:
+        return None
+    band = silhouette_band(views.masks.float(), width)
+    return {"width_px": width, "pixel_share": float(band.float().mean()),
+            "error_share": _stats(error_share(rgb, views.images, band))}
 
 
 def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,
@@ -62,6 +72,7 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
     metrics = {"split": split, "views": len(views), "resolution": [views.width, views.height],
                "background": list(cfg.data.background), "renderer": cfg.eval_render().renderer,
                "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
+               "silhouette_band": _band(rgb, views),
                "lpips": _stats(lp) | {"backbone": "alex"} if lp is not None else lp_msg,
                "render_seconds": seconds}
     write_json(out_dir / "metrics.json", metrics)
