@@ -149,3 +149,27 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     assert main(["render", "--run", str(full)]) == 0
     frames = list(imageio.get_reader(full / "orbit.mp4").iter_data())
     assert len(frames) == 4 and frames[0].shape == (24, 24, 3)
+
+
+def test_late_gan_starts_at_its_fraction_with_its_own_schedule(cache, tmp_path):
+    cfg = load_config(Config, _tiny(cache, steps=4, ssim_weight=0.2, gan={"width": 8, "layers": 2, "start": 0.5,
+                                                                         "weight": 0.1}))
+    ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
+    train = load_views(cfg, "train", ctx.device)
+    t = build(cfg, neural_scene_from(cfg, fit_geometry(cfg, ctx, train), seed=0))
+    disc = t.modules["disc"]
+    d0 = [p.detach().clone() for p in disc.parameters()]
+    lr_d = t.optimizers["d"].param_groups[0]["lr"]
+    seen = []
+    for k in range(cfg.neural.steps):
+        out = train_step(cfg.neural, t, train, k)
+        seen.append(("loss/disc" in out, "loss/adv" in out, "loss/dssim" in out))
+        if k == 1:  # before the start (step round(0.5 · 4) = 2): the discriminator has not moved
+            assert all(torch.equal(a, b) for a, b in zip(d0, disc.parameters()))
+            assert t.optimizers["d"].param_groups[0]["lr"] == lr_d
+    assert seen == [(False, False, True)] * 2 + [(True, True, True)] * 2
+    assert not all(torch.equal(a, b) for a, b in zip(d0, disc.parameters()))
+    # Over its 2 active steps the discriminator's rate decays to lr_final of its start value.
+    assert math.isclose(t.optimizers["d"].param_groups[0]["lr"], lr_d * cfg.neural.lr_final, rel_tol=1e-9)
+    with pytest.raises(ConfigError, match="neural.gan.start"):
+        load_config(Config, _tiny(cache, gan={"start": 1.0}))

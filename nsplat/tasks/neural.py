@@ -230,7 +230,9 @@ def build(cfg: Config, scene: SurfelScene, seed: int = 0) -> Trainables:
         t.modules["disc"] = disc.to(device)
         opt_d = torch.optim.Adam(disc.parameters(), lr=n.gan.lr, betas=tuple(n.gan.betas))
         t.optimizers["d"] = opt_d
-        t.schedulers["d"] = torch.optim.lr_scheduler.ExponentialLR(opt_d, gamma)
+        # The discriminator trains from n.gan_start_step() on; its rate decays over those steps only.
+        gamma_d = n.lr_final ** (1.0 / max(1, n.steps - n.gan_start_step()))
+        t.schedulers["d"] = torch.optim.lr_scheduler.ExponentialLR(opt_d, gamma_d)
     return t
 
 
@@ -270,7 +272,7 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
     def add(name: str, value: float, w: float) -> None:
         sums[name] = sums.get(name, 0.0) + w * value
 
-    use_gan = disc is not None and k >= n.gan.start
+    use_gan = disc is not None and k >= n.gan_start_step()
     kept = None  # a single chunk's forward, reused by the generator's step (more chunks: recomputed)
     if use_gan:
         t.optimizers["d"].zero_grad(set_to_none=True)
@@ -298,8 +300,9 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
         add("psnr/train_batch", float(psnr(rgb.detach(), gt).mean()), w)
     distributed.all_reduce_grads(t.optimizers["g"])
     t.optimizers["g"].step()
-    for sched in t.schedulers.values():
-        sched.step()
+    t.schedulers["g"].step()
+    if use_gan:
+        t.schedulers["d"].step()
     out = distributed.all_reduce_scalars(sums)
     out.update({f"lr/{g['name']}": g["lr"] for g in t.optimizers["g"].param_groups})
     return out

@@ -151,7 +151,9 @@ class GanConfig:
         enabled: train with the adversarial term (``false``: L1 only; no discriminator is built).
         mode: ``lsgan`` or ``bce``. weight: adversarial weight (pix2pix: 1). lambda_l1: L1 weight (100).
         lr, betas: discriminator Adam. width, layers, norm: discriminator shape.
-        start: step of stage 2 at which the adversarial term starts (the L1 term alone before).
+        start: fraction of stage 2 after which the discriminator and the adversarial term join (the
+            image loss alone before; first GAN step ``round(start · neural.steps)``); the discriminator's
+            rate decays to ``neural.lr_final`` over its own steps.
     """
 
     enabled: bool = True
@@ -163,7 +165,11 @@ class GanConfig:
     width: int = 32
     layers: int = 3
     norm: Literal["batch", "instance", "group", "none"] = "instance"
-    start: int = 0
+    start: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.start < 1.0:
+            raise ConfigError(f"neural.gan.start: expected a fraction of the steps in [0, 1), got {self.start}")
 
 
 @dataclasses.dataclass
@@ -205,6 +211,10 @@ class NeuralConfig:
     ssim_weight: float = 0.0
     unet: UNetConfig = dataclasses.field(default_factory=UNetConfig)
     gan: GanConfig = dataclasses.field(default_factory=GanConfig)
+
+    def gan_start_step(self) -> int:
+        """First stage-2 step with the discriminator: ``round(gan.start · steps)`` (< ``steps``)."""
+        return min(round(self.gan.start * self.steps), self.steps - 1)
 
     def __post_init__(self) -> None:
         for key in ("steps", "batch", "features"):
