@@ -33,7 +33,7 @@ def _png(x: torch.Tensor) -> np.ndarray:
     return (x.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def _band(rgb: torch.Tensor, views: PosedViews, width: int = 3) -> dict | None:
+def _band(rgb: torch.Tensor, views: PosedViews, width: int = 1) -> dict | None:
     """Where the error sits: the share of pixels within ``width`` px of a silhouette edge and their share
     of the squared error (``None`` without coverage masks)."""
     if views.masks is None:
