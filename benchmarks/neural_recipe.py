@@ -35,18 +35,21 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 IMAGES = REPO / "docs" / "images" / "neural"
 
-#: Stage-1 variants: overrides of the config's geometry stage.
+#: Stage-1 variants: overrides of the config's geometry stage (docs/results.md, "The recipe").
+DENSIFY = ["geometry.optim.densify.enabled=true", "geometry.optim.densify.start=2", "geometry.optim.densify.every=2",
+           "geometry.optim.densify.stop=12", "geometry.optim.densify.grad_threshold=0.05",
+           "geometry.optim.densify.max_growth=0.3"]
 STAGE1: dict[str, list[str]] = {
     "final": [],
-    "batch4-10ep": ["geometry.optim.batch=4", "geometry.optim.epochs=10", "geometry.optim.densify.enabled=false"],
-    "no-densify": ["geometry.optim.densify.enabled=false"],
+    "batch4-10ep": ["geometry.optim.batch=4", "geometry.optim.epochs=10"],
+    "batch1-10ep": ["geometry.optim.epochs=10"],
+    "densify": DENSIFY,
 }
 #: Stage-2 variants: overrides of the config's neural stage (all start from stage 1 "final").
 STAGE2: dict[str, list[str]] = {
     "final": [],
     "l1-only": ["neural.gan.enabled=false", "neural.ssim_weight=0.0"],
-    "gan-from-start": ["neural.gan.start=0", "neural.gan.weight=1.0"],
-    "no-ssim": ["neural.ssim_weight=0.0"],
+    "gan-from-start": ["neural.gan.start=0.0", "neural.gan.weight=1.0", "neural.ssim_weight=0.0"],
 }
 
 
@@ -173,7 +176,7 @@ def main() -> None:
     print(table)
     RESULTS.mkdir(parents=True, exist_ok=True)
     out = RESULTS / f"neural_recipe-{stem}.json"
-    out.write_text(json.dumps({"config": str(args.config.relative_to(REPO)), "extra": args.extra, "stage1": s1,
+    out.write_text(json.dumps({"config": str(args.config), "extra": args.extra, "stage1": s1,
                                "stage2": s2, "markdown": table}, indent=1))
     if any(r["name"] == "final" for r in s2):
         figure(s2, f"{stem}: final recipe on held-out test views; PSNR over stage-2 steps", IMAGES / f"recipe-{stem}.png")

@@ -406,8 +406,8 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     if cfg.eval.geometry:
         from nsplat.tasks.neural_eval import evaluate_geometry
 
-        splits = {"val": val} if val is not None else {}
-        splits[cfg.eval.split] = load_views(cfg, cfg.eval.split, ctx.device)
+        splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
+                  cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
         evaluate_geometry(cfg, ctx, splits, eval_seed(cfg))
     write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
     return metrics
