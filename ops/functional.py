@@ -149,7 +149,7 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
           background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10, lowpass: float = 1.0,
           seed: int = 0, hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
           stratified: bool = False) -> SplatOutput:
-    """Render surfel features by EWA surface splatting with per-pixel Poisson sampling (unbiased backward).
+    """Render surfel features by EWA surface splatting with per-pixel Poisson sampling (backward: see ``estimator``).
 
     For every camera and pixel, a sequential Poisson sample of ``samples`` points is drawn with size
     measure ``λ_k(x) = α_k(x)`` (untruncated kernels), sorted by per-pixel depth, composited, and
