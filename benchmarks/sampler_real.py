@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 CACHE = ROOT / "data_cache" / "sampler_scenes"
 RESULTS = ROOT / "benchmarks" / "results"
-SCENES = ("default_fit", "lego_hull", "lego_fit", "bunny", "random_20k")
+SCENES = ("default_fit", "lego_hull", "lego_fit", "lego20k_hull", "bunny", "random_20k")
 NEAR, FAR, LOWPASS = 0.01, 1e10, 1.0
 
 
