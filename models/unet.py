@@ -5,8 +5,10 @@ normalisation after all but the first), widths doubling from ``width`` up to ``m
 Decoder: mirror image with upsampling (4×4 transposed convolutions as in pix2pix, or bilinear
 upsampling + 3×3 convolution), ReLU, normalisation, dropout on the ``dropout_layers`` innermost
 decoder levels, and skip connections by concatenation. A 3×3 head maps to ``out_channels`` and a
-squashing activation to ``output_range`` (optionally as a residual around a base image). Inputs of any size are padded (replicate) to a multiple
-of ``2**depth`` and the output is cropped back, so ``H, W`` need not be powers of two.
+squashing activation to ``output_range`` (optionally as a residual around a base image). Weights and
+activations are channels-last (NHWC); inputs may be in either layout. Inputs of any size are padded
+(replicate) to a multiple of ``2**depth`` and the output is cropped back, so ``H, W`` need not be
+powers of two.
 """
 from __future__ import annotations
 
@@ -88,6 +90,9 @@ class UNet(nn.Module):
                 layers.append(nn.Dropout(dropout))
             self.up.append(nn.Sequential(*layers))
         self.head = nn.Conv2d(2 * widths[0], out_channels, 3, padding=1)
+        # channels-last (NHWC) weights and activations: 1.3-1.5x faster CPU convolutions with group norm
+        # (oneDNN), measured on the lego and default shaders; the input is converted in forward.
+        self.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """``x [B, C, H, W]`` → ``[B, out_channels, H, W]`` in ``output_range``.
@@ -103,7 +108,7 @@ class UNet(nn.Module):
         ph, pw = (-H) % m, (-W) % m
         if ph or pw:
             x = F.pad(x, (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2), mode="replicate")
-        skips = [self.stem(x)]
+        skips = [self.stem(x.contiguous(memory_format=torch.channels_last))]
         for layer in self.down:
             skips.append(layer(skips[-1]))
         h = skips.pop()
