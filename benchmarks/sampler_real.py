@@ -14,6 +14,8 @@ Per scene and (m, ε), over the pixels with coverage (dense Λ(x) > 1e-10):
   * λ support: points with λ > 1e-2 / 1e-3 / 1e-4 and inside 3σ (Mahalanobis ≤ 3) per pixel,
   * ``oracle``: the evaluations of a search with exact per-point bounds in decreasing λ order, i.e. the
     fewest points whose exact mass leaves a tail T with T·ξ_(m+1) < ε (the pruning rule's own minimum),
+  * the inner loop alone (``offer_bench`` of the probe: ns per ``offer_point`` — one exact kernel evaluation with
+    its draw, rejection test and heap update — over the points with λ > 1e-5 at 400 covered pixels, m = the row's),
   * op forward+backward CPU time (``splat``, one thread) and that of the 3σ-truncated tile rasteriser
     (``nsplat.truncated.splat_truncated``, autograd) on the same splats.
 Support statistics use ``--stat-pixels`` random covered pixels. Writes benchmarks/results/sampler_real.json.
@@ -190,6 +192,10 @@ def main() -> None:
                    **{k: v for k, v in stats.items() if not k.startswith("oracle")},
                    "load": os.getloadavg()[0]}
             row["ns_per_eval"] = 1e9 * t / max(1.0, float(work.double().sum()))
+            pix = torch.nonzero(cov).flatten()
+            pix = pix[torch.randperm(pix.numel(), generator=torch.Generator().manual_seed(0))[:400]].contiguous()
+            secs, offers = probe.offer_bench(mu, con, amp, proj.sigma2.contiguous(), pix, W, m, 1, 1e-5, args.repeats)
+            row["inner_ns_per_eval"] = 1e9 * secs / max(1.0, offers)
             if not args.quick and (m, eps) == (40, 0.01):
                 row.update(op_times(sc, m, eps, args.repeats))
             rows.append(row)
@@ -203,7 +209,7 @@ def main() -> None:
 
 def table(rows: list[dict]) -> str:
     head = ("| scene | N | res | m | ε | sampler s | µs/px | evals/px | nodes/px | oracle | λ>1e-2/1e-3/1e-4 | 3σ "
-            "| evals/(λ>1e-3) | ns/eval | op f+b s | 3σ raster f+b s | load |")
+            "| evals/(λ>1e-3) | ns/eval | inner ns/eval | op f+b s | 3σ raster f+b s | load |")
     out = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         out.append(
@@ -211,7 +217,8 @@ def table(rows: list[dict]) -> str:
             f"{r['us_per_pixel']:.1f} | {r['evals_per_pixel']:.0f} | {r['nodes_per_pixel']:.0f} | "
             f"{r['oracle_evals']:.0f} | {r['support_0.01']:.0f}/{r['support_0.001']:.0f}/{r['support_0.0001']:.0f} | "
             f"{r['support_3sigma']:.0f} | {r['evals_per_pixel'] / max(r['support_0.001'], 1e-9):.1f} | "
-            f"{r['ns_per_eval']:.0f} | {r.get('op_fwd_bwd_s', float('nan')):.2f} | "
+            f"{r['ns_per_eval']:.0f} | {r.get('inner_ns_per_eval', float('nan')):.0f} | "
+            f"{r.get('op_fwd_bwd_s', float('nan')):.2f} | "
             f"{r.get('truncated_fwd_bwd_s', float('nan')):.2f} | {r['load']:.1f} |")
     return "\n".join(out)
 

@@ -170,3 +170,42 @@ def test_threshold_probabilities_equal_priority_weights_of_exact_sps(stratified)
             np.testing.assert_allclose(got_p[p][sel], want, rtol=1e-9, atol=1e-300)
             checked += 1
     assert checked > 0.9 * 2 * W * H
+
+
+def test_host_fast_exp_within_one_ulp(tmp_path):
+    """The sampler's inlined host exp (core/common.h ``fast_exp``) is within 1 ulp of the exact exponential
+    (long double reference) on 4 M arguments across its fast range, and equals the library exp outside it."""
+    import shutil
+    import subprocess
+
+    from nsplat.ops.build import CSRC
+
+    if shutil.which("g++") is None:
+        pytest.fail("g++ is needed (it also builds the op)")
+    src = tmp_path / "fast_exp.cpp"
+    src.write_text(r'''
+#include "core/common.h"
+#include <cstdio>
+#include <random>
+int main() {
+  std::mt19937_64 g(7);
+  double worst = 0.0;
+  for (long i = 0; i < 4000000; ++i) {
+    const double x = i % 2 ? std::uniform_real_distribution<double>(-708.0, 709.0)(g)
+                           : std::uniform_real_distribution<double>(-40.0, 2.0)(g);
+    const long double ref = expl(static_cast<long double>(x));
+    const double r = static_cast<double>(ref), ulp = std::nextafter(r, INFINITY) - r;
+    const double err = static_cast<double>(fabsl(static_cast<long double>(nsplat::fast_exp(x)) - ref)) / ulp;
+    worst = err > worst ? err : worst;
+  }
+  const double special[] = {-INFINITY, INFINITY, -745.2, -708.0, 709.0, 710.0, 0.0, -0.0};
+  int mismatched = std::isnan(nsplat::fast_exp(NAN)) ? 0 : 1;
+  for (double x : special) mismatched += nsplat::fast_exp(x) != std::exp(x);
+  std::printf("%.6f %d\n", worst, mismatched);
+}
+''')
+    exe = tmp_path / "fast_exp"
+    subprocess.run(["g++", "-O2", "-std=c++17", f"-I{CSRC}", str(src), "-o", str(exe)], check=True)
+    worst, mismatched = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split()
+    assert float(worst) <= 1.0, f"fast_exp: {worst} ulp"
+    assert int(mismatched) == 0

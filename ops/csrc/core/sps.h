@@ -62,17 +62,21 @@ struct SplatsView {
 
 NS_HD bool key_less(double ka, int ia, double kb, int ib) { return ka < kb || (ka == kb && ia < ib); }
 
-// Max-heap on (key, id).
+// Max-heap on (key, id). Sift-down moves a hole instead of swapping (the same result: keys are distinct pairs).
 NS_HD void heap_sift_down(double* key, int* id, int n, int i) {
+  const double k = key[i];
+  const int v = id[i];
   while (true) {
-    int l = 2 * i + 1, r = l + 1, big = i;
-    if (l < n && key_less(key[big], id[big], key[l], id[l])) big = l;
-    if (r < n && key_less(key[big], id[big], key[r], id[r])) big = r;
-    if (big == i) return;
-    double tk = key[i]; key[i] = key[big]; key[big] = tk;
-    int ti = id[i]; id[i] = id[big]; id[big] = ti;
+    int big = 2 * i + 1;
+    if (big >= n) break;
+    if (big + 1 < n && key_less(key[big], id[big], key[big + 1], id[big + 1])) ++big;
+    if (!key_less(k, v, key[big], id[big])) break;
+    key[i] = key[big];
+    id[i] = id[big];
     i = big;
   }
+  key[i] = k;
+  id[i] = v;
 }
 
 NS_HD void heap_push(double* key, int* id, int n, double k, int v) {
@@ -112,11 +116,11 @@ NS_HD void node_bound(const TreeView& T, int node, double u, double v, double* l
     double lh = ub > 0.0 ? log(ub) : -INFINITY;
     lub = dmin(lub, lh);
     *log_ub = lub;
-    *est = dmin(dmax(h, 0.0), exp(lub));
+    *est = dmin(dmax(h, 0.0), fast_exp(lub));
     return;
   }
   *log_ub = lub;
-  *est = 0.5 * exp(lub);
+  *est = 0.5 * fast_exp(lub);
 }
 
 struct PixelStats {
@@ -157,7 +161,7 @@ NS_HD PixelState pixel_state(double* key, int* idx, int m, double log_eps) {
 // candidates are compared on exact keys, so the result is the same as with exact keys everywhere.
 NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw& draw, PixelState& S) {
   double lam_log = log_size(T.mu + 2 * s, T.con + 3 * s, T.logA[s], u, v);
-  double lam = exp(lam_log);
+  double lam = fast_exp(lam_log);
   S.visited += lam;
   ++S.evaluated;
   int pid = T.id[s];
@@ -178,8 +182,8 @@ NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw&
   }
   if (k < S.rest) {
     S.rest = k;
-    S.xi_rest = exp(k);
-    S.budget = exp(S.log_eps - k);
+    S.xi_rest = fast_exp(k);
+    S.budget = fast_exp(S.log_eps - k);
   }
 }
 
@@ -274,7 +278,7 @@ NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray&
       continue;
     }
     double lam_log = log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v);
-    double pi = inclusion == kPips ? c * exp(lam_log) : exp(dmin(lam_log + rest, 0.0));
+    double pi = inclusion == kPips ? c * fast_exp(lam_log) : fast_exp(dmin(lam_log + rest, 0.0));
     prob[i] = static_cast<S>(dmin(1.0, pi));
   }
   for (int i = cnt; i < m; ++i) {

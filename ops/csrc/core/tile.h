@@ -235,28 +235,38 @@ NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, i
   int near[kBins + 1], far[kBins + 1];
   for (int b = 0; b <= kBins; ++b) near[b] = far[b] = 0;
   double lb0 = -INFINITY;  // largest near bound (bin 0's top; far items are never in bin 0)
+  int nb = 0;              // bins in use: every item is in a bin < nb
   const int n_scan = order ? n_near : n;
   for (int i = 0; i < n_scan; ++i) {
-    if (items[i].tile_bin >= 0) { ++far[items[i].tile_bin]; continue; }
+    const int tb = items[i].tile_bin;
+    if (tb >= 0) {
+      ++far[tb];
+      nb = imax(nb, tb + 1);
+      continue;
+    }
     const double lb = item_log_bound(items[i], u, v);
     const int b = bound_bin(lb);
     lb0 = dmax(lb0, lb);
     ++near[b];
+    nb = imax(nb, b + 1);
     if (order) bins[i] = b;
   }
   if (order)
-    for (int i = n_near; i < n; ++i) ++far[items[i].tile_bin];
+    for (int i = n_near; i < n; ++i) {
+      ++far[items[i].tile_bin];
+      nb = imax(nb, items[i].tile_bin + 1);
+    }
   st.nodes = n_scan;
   // top[b] >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products
   double top[kBins], suffix[kBins + 1];
-  top[0] = exp(lb0) * (1.0 + 1e-12);
+  top[0] = fast_exp(lb0) * (1.0 + 1e-12);
   double t = exp(kBinTop) * (1.0 + 1e-12);
-  for (int b = 1; b < kBins; ++b) {
+  for (int b = 1; b < nb; ++b) {
     t *= kBinStep;
     top[b] = t;
   }
-  suffix[kBins] = 0.0;
-  for (int b = kBins - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * top[b];
+  suffix[nb] = 0.0;
+  for (int b = nb - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * top[b];
   if (suffix[0] < kMinTotal) {  // certainly below the floor
     st.exhaustive = n == 0;
     return st;
@@ -266,17 +276,17 @@ NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, i
   if (order) {
     near_at[0] = 0;
     far_at[0] = n_near;
-    for (int b = 0; b < kBins; ++b) {
+    for (int b = 0; b < nb; ++b) {
       near_at[b + 1] = near_at[b] + near[b];
       far_at[b + 1] = far_at[b] + far[b];
     }
     int fill[kBins];
-    for (int b = 0; b < kBins; ++b) fill[b] = near_at[b];
+    for (int b = 0; b < nb; ++b) fill[b] = near_at[b];
     for (int i = 0; i < n_near; ++i) order[fill[bins[i]]++] = i;
   }
   PixelState S = pixel_state(key, idx, m, log_eps);
   bool stopped = false;
-  for (int b = 0; b < kBins && !stopped; ++b) {
+  for (int b = 0; b < nb && !stopped; ++b) {
     int left = near[b] + far[b];  // items of bin b not yet visited
     for (int pass = 0; pass < 2 && left > 0 && !stopped; ++pass) {  // near items, then far ones
       const int j0 = order ? (pass == 0 ? near_at[b] : far_at[b]) : 0;
@@ -288,7 +298,7 @@ NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, i
           if (pass == 0 ? (tb >= 0 || bound_bin(item_log_bound(items[i], u, v)) != b) : tb != b) continue;
         }
         const double R = left * top[b] + suffix[b + 1];  // pending bound mass
-        const double pruned = S.log_pruned == -INFINITY ? 0.0 : exp(S.log_pruned);
+        const double pruned = S.log_pruned == -INFINITY ? 0.0 : fast_exp(S.log_pruned);
         if (S.visited + pruned + R < kMinTotal) {  // Lambda is certainly below the floor: the pixel stays empty
           S.log_pruned = log_add_exp(S.log_pruned, log(R));
           S.pruned_est += 0.5 * R;
