@@ -22,7 +22,7 @@ from typing import Literal
 import torch
 
 from nsplat import distributed
-from nsplat.config import require, require_fields
+from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.views import PosedViews
 from nsplat.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
@@ -124,6 +124,9 @@ class FitConfig:
             its contribution summed over all views is at least this. jitter: tangent offset of a moved
             point, in units of its source point's scale.
         densify: adaptive density control (:class:`nsplat.densify.DensifyConfig`; off by default).
+        mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
+            loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
+            only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
     """
 
     epochs: int = 300
@@ -139,6 +142,7 @@ class FitConfig:
     min_weight: float = 0.02
     jitter: float = 1.0
     densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
+    mask_weight: float = 0.0
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -146,7 +150,7 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
-                       reposition_every=">=1", min_weight=">=0", jitter=">=0")
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0")
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -185,6 +189,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     """
     V, W, H = len(views), views.width, views.height
     images, viewmats, Ks = views.images, views.viewmats, views.Ks
+    masks = views.masks
+    if cfg.mask_weight > 0 and masks is None:
+        raise ConfigError("mask_weight: > 0 needs views with masks (RGBA images); these views have none")
     payload = latest_payload(Path(run_dir), resume)
     rows = checkpoint_rows(payload, "scene", "_means")
     if rows is not None and rows != scene.num_points:  # densified before the checkpoint
@@ -207,10 +214,13 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         # each rank rendering its share of the batch's slots j; a view's seed is its global slot's).
         for j in distributed.shard(idx.numel()):
             v = int(idx[j])
-            img = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
-                               seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
-                               background=background)
-            loss = (img - images[v:v + 1]).abs().mean() / idx.numel()
+            img, alpha = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
+                                      seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
+                                      background=background, with_alpha=True)
+            loss = (img - images[v:v + 1]).abs().mean()
+            if cfg.mask_weight > 0:
+                loss = loss + cfg.mask_weight * (alpha[..., 0] - masks[v:v + 1].float()).abs().mean()
+            loss = loss / idx.numel()
             means = scene.tensor("means")
             before = None if local is None or means.grad is None else means.grad.clone()
             loss.backward()

@@ -127,18 +127,23 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                  cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none"] = "lambert",
-                 background: torch.Tensor | None = None) -> torch.Tensor:
-    """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]``.
+                 background: torch.Tensor | None = None,
+                 with_alpha: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
+    ``with_alpha``: ``(images, alpha [B,H,W,1])``).
 
     With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
     paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
     a time (the op takes one feature tensor for all its cameras). Camera ``b`` uses op seed ``seed + b``.
     """
     if shading == "none":
-        return render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
-                      width, height, cfg, seed=seed, background=background).image
-    normals = scene.normals
-    shaded = lambert(scene.features, normals, viewmats)
-    out = [render(scene.means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
-                  width, height, cfg, seed=seed + b, background=background).image for b in range(viewmats.shape[0])]
-    return torch.cat(out, 0)
+        outs = [render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
+                       width, height, cfg, seed=seed, background=background)]
+    else:
+        normals = scene.normals
+        shaded = lambert(scene.features, normals, viewmats)
+        outs = [render(scene.means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
+                       Ks[b:b + 1], width, height, cfg, seed=seed + b, background=background)
+                for b in range(viewmats.shape[0])]
+    image = torch.cat([o.image for o in outs], 0)
+    return (image, torch.cat([o.alpha for o in outs], 0)) if with_alpha else image

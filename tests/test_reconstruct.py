@@ -215,3 +215,38 @@ def test_task_registered_and_config_errors_name_the_key():
                           ("render.estimator=biased", "render.estimator"), ("data.views=0", "data.views")]:
         with pytest.raises(ConfigError, match=key):
             load_config(Config, base, [override])
+
+
+def test_fit_mask_weight_fits_coverage_and_needs_masks(tmp_path):
+    """``mask_weight``: the coverage term alone moves the silhouette towards the masks. The scene's colour
+    equals the background, so the image loss is 0 everywhere and only the coverage term has a gradient;
+    views without masks are a config error naming the option."""
+    gt_pts, _, vm, Ks, _ = _tiny_problem(n=200, views=6, res=16)
+    gt = SurfelScene.from_points(SceneConfig(), gt_pts * 0.6, gt_pts / gt_pts.norm(dim=1, keepdim=True),
+                                 features=1.0)
+    s0, n0 = fibonacci_sphere(200, torch.zeros(3), 1.05)
+    scene = SurfelScene.from_points(SceneConfig(learn=["means", "scales"]), s0, n0, features=1.0)
+    rcfg = RenderConfig(renderer="dense")
+    with torch.no_grad():
+        _, gt_alpha = render_views(gt, vm, Ks, 16, 16, rcfg, shading="none", with_alpha=True)
+    white = torch.ones(6, 16, 16, 3)
+    views = PosedViews(white, vm, Ks, [str(i) for i in range(6)], masks=gt_alpha[..., 0])
+
+    def coverage_error() -> float:
+        with torch.no_grad():
+            _, a = render_views(scene, vm, Ks, 16, 16, rcfg, shading="none", with_alpha=True)
+        return float((a - gt_alpha).abs().mean())
+
+    before = coverage_error()
+    control = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=False)
+    fit(scene, views, control, RenderConfig(renderer="splat"), tmp_path / "c", background=torch.ones(3),
+        log=LogConfig(checkpoint=100, progress=False))
+    assert coverage_error() > 0.95 * before  # without the term the silhouette stays (the image loss is ~0)
+    cfg = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=False,
+                    mask_weight=1.0)
+    fit(scene, views, cfg, RenderConfig(renderer="splat"), tmp_path / "a", background=torch.ones(3),
+        log=LogConfig(checkpoint=100, progress=False))
+    assert coverage_error() < 0.5 * before, (before, coverage_error())
+    with pytest.raises(ConfigError, match="mask_weight"):
+        fit(scene, PosedViews(white, vm, Ks, [str(i) for i in range(6)]), cfg, RenderConfig(renderer="splat"),
+            tmp_path / "b", log=LogConfig(checkpoint=100, progress=False))
