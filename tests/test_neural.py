@@ -173,3 +173,30 @@ def test_late_gan_starts_at_its_fraction_with_its_own_schedule(cache, tmp_path):
     assert math.isclose(t.optimizers["d"].param_groups[0]["lr"], lr_d * cfg.neural.lr_final, rel_tol=1e-9)
     with pytest.raises(ConfigError, match="neural.gan.start"):
         load_config(Config, _tiny(cache, gan={"start": 1.0}))
+
+
+def test_eval_draws_average_independent_feature_images(cache, tmp_path):
+    """``eval.draws``: an evaluation render's feature image is the mean of that many op draws (draw j with the
+    seeds shifted by j·DRAW_STRIDE; draw 0 is the plain render), and the U-Net shades the mean."""
+    from nsplat.tasks.neural import DRAW_STRIDE
+
+    raw = _tiny(cache)
+    raw["eval"]["draws"] = 3
+    cfg = load_config(Config, raw)
+    ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
+    train = load_views(cfg, "train", ctx.device)
+    model = build(cfg, neural_scene_from(cfg, fit_geometry(cfg, ctx, train), 0)).modules["model"].eval()
+    views = train.subset([0, 1])
+    one, cond1 = render_split(model, views, seed=5)
+    avg, cond3 = render_split(model, views, seed=5, draws=cfg.eval.draws)
+    with torch.no_grad():
+        draws = [model.feature_image(views.viewmats, views.Ks, views.width, views.height, 5 + j * DRAW_STRIDE)
+                 for j in range(3)]
+        expected = torch.stack(draws).mean(0)
+        rgb = model.unet(expected, base=expected[:, :3]).permute(0, 2, 3, 1).clamp(0, 1)
+    assert torch.equal(cond1, draws[0])
+    assert torch.allclose(cond3, expected, atol=1e-6) and not torch.allclose(cond3, cond1, atol=1e-3)
+    assert torch.allclose(avg, rgb, atol=1e-6) and not torch.allclose(avg, one, atol=1e-3)
+    raw["eval"]["draws"] = 0
+    with pytest.raises(ConfigError, match="eval.draws"):
+        load_config(Config, raw)

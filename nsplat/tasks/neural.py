@@ -55,6 +55,8 @@ log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
+#: Seed offset between the independent draws of an averaged evaluation render (``eval.draws``).
+DRAW_STRIDE = 1 << 20
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -145,9 +147,18 @@ class NeuralRenderer(nn.Module):
         return img.permute(0, 3, 1, 2).contiguous()
 
     def forward(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                seed: int | Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(rgb [B,3,H,W], feature image [B,C(+1),H,W])``; ``seed`` as in :meth:`feature_image`."""
+                seed: int | Sequence[int], draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rgb [B,3,H,W], feature image [B,C(+1),H,W])``; ``seed`` as in :meth:`feature_image`.
+
+        ``draws``: the feature image is the mean of that many independent op draws (draw ``j`` renders
+        with the seeds shifted by ``j·DRAW_STRIDE``; draw 0 is the single-draw render).
+        """
         cond = self.feature_image(viewmats, Ks, width, height, seed)
+        for j in range(1, draws):
+            shifted = seed + j * DRAW_STRIDE if isinstance(seed, int) else [s + j * DRAW_STRIDE for s in seed]
+            cond = cond + self.feature_image(viewmats, Ks, width, height, shifted)
+        if draws > 1:
+            cond = cond / draws
         return self.unet(cond, base=cond[:, :3] if self.residual else None), cond
 
 
@@ -315,9 +326,10 @@ def eval_seed(cfg: Config) -> int:
 
 @torch.no_grad()
 def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4,
-                 render_cfg: gateway.RenderConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                 render_cfg: gateway.RenderConfig | None = None, draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode), with the
-    render settings ``render_cfg`` (default: the model's, i.e. training's; see ``Config.eval_render``)."""
+    render settings ``render_cfg`` (default: the model's, i.e. training's; see ``Config.eval_render``) and
+    ``draws`` averaged op draws per feature image (``eval.draws``)."""
     was, trained_cfg = model.training, model.render_cfg
     model.eval()
     if render_cfg is not None:
@@ -325,7 +337,8 @@ def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int
     rgbs, conds = [], []
     try:
         for s in range(0, len(views), batch):
-            rgb, cond = model(views.viewmats[s:s + batch], views.Ks[s:s + batch], views.width, views.height, seed + s)
+            rgb, cond = model(views.viewmats[s:s + batch], views.Ks[s:s + batch], views.width, views.height, seed + s,
+                              draws=draws)
             rgbs.append(rgb.permute(0, 2, 3, 1))
             conds.append(cond)
     finally:
@@ -355,7 +368,8 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
         out = {}
         for name, sub in (("train", tr_sub), ("val", val_sub)):
             if sub is not None:
-                rgb, _ = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render())
+                rgb, _ = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render(),
+                                      draws=cfg.eval.draws)
                 rec[f"{name}_psnr"] = out[f"psnr/{name}"] = float(psnr(rgb, sub.images).mean())
         t.extra["history"].append(rec)
         write_json(ctx.run_dir / "history.json", {"history": t.extra["history"],
@@ -364,7 +378,7 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
 
     def images(done: int, writer: Any) -> None:
         sub = (val_sub if val_sub is not None else tr_sub).spread(2)
-        rgb, cond = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render())
+        rgb, cond = render_split(model, sub, seed=eval_seed(cfg), render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
         writer.add_images("images/features", _preview(cond), done)
         writer.add_images("images/render", _nchw(rgb), done)
         writer.add_images("images/gt", _nchw(sub.images), done)

@@ -249,6 +249,10 @@ class EvalConfig:
             empty (default): evaluate with the training settings. See :meth:`Config.eval_render`.
         geometry: also evaluate stage 1 alone (``geometry.ply`` rendered as RGB surfels) on val and
             ``split`` after training (``eval_geometry.json``).
+        draws: independent op draws per evaluation render (held-out metrics, training-time validation,
+            the orbit video) whose feature images are averaged before the U-Net: a lower-variance estimate
+            of the expected feature image the shader was trained on (unlike more ``samples``, which shifts
+            it); costs ``draws`` splats per view. 1 (default): one draw.
     """
 
     split: Literal["train", "val", "test"] = "test"
@@ -258,6 +262,11 @@ class EvalConfig:
     fps: int = 20
     render: dict[str, Any] = dataclasses.field(default_factory=dict)
     geometry: bool = True
+    draws: int = 1
+
+    def __post_init__(self) -> None:
+        if self.draws < 1:
+            raise ConfigError(f"eval.draws: expected >= 1, got {self.draws}")
 
 
 @dataclasses.dataclass

@@ -52,7 +52,7 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
     ``<name>_gt.png`` per view; logs the means. Returns the metrics dict.
     """
     t0 = time.perf_counter()
-    rgb, _ = render_split(model, views, seed=seed, render_cfg=cfg.eval_render())
+    rgb, _ = render_split(model, views, seed=seed, render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
     seconds = time.perf_counter() - t0
     p, s = psnr(rgb, views.images), ssim(rgb, views.images)
     ok, lp_msg = lpips_status()
@@ -71,7 +71,7 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
             iio.imwrite(out_dir / f"{stem}_gt.png", _png(views.images[i]))
     metrics = {"split": split, "views": len(views), "resolution": [views.width, views.height],
                "background": list(cfg.data.background), "renderer": cfg.eval_render().renderer,
-               "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
+               "draws": cfg.eval.draws, "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
                "silhouette_band": _band(rgb, views),
                "lpips": _stats(lp) | {"backbone": "alex"} if lp is not None else lp_msg,
                "render_seconds": seconds}
@@ -134,7 +134,7 @@ def write_orbit(cfg: Config, ctx: RunContext, model: NeuralRenderer, train: Pose
     count = viewmats.shape[0]
     orbit = PosedViews(train.images[:1].expand(count, -1, -1, -1), viewmats,
                        train.Ks[:1].expand(count, 3, 3).contiguous(), [f"orbit_{i}" for i in range(count)])
-    rgb, _ = render_split(model, orbit, seed=seed, render_cfg=cfg.eval_render())
+    rgb, _ = render_split(model, orbit, seed=seed, render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
     frames = _png(rgb)
     H, W = frames.shape[1:3]
     frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")  # even sizes for yuv420p
