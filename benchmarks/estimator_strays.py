@@ -1,0 +1,96 @@
+"""Where the Chamfer gap between the gradient estimators comes from: accuracy or completeness, on or off the surface.
+
+Reads the final point clouds (``reconstruction.ply``) of an estimator sweep (``benchmarks/estimator_sweep.py``;
+its run folders under ``runs/bench/sweep-<setting>[-<tag>]/``) and splits each run's Chamfer distance into its
+two directions, in units of the ground truth's bounding-box diagonal D:
+
+* accuracy, reconstruction → ground truth: mean, median, 90th/99th percentile, and the share of the
+  reconstructed points more than ``--far`` D from the ground-truth surface, split into inside / outside by the
+  sign along the nearest ground-truth point's normal;
+* completeness, ground truth → reconstruction: mean.
+
+    python benchmarks/estimator_strays.py --setting cpu-long --shapes bunny teapot yoga1 yoga6
+    python benchmarks/estimator_strays.py --setting cpu-long --tag long128 --shapes bunny --lrs 0.01
+
+Writes ``benchmarks/results/estimator_strays-<setting>[-<tag>].json`` and prints a Markdown table. Runs whose
+folder is missing are skipped (the sweep's JSON keeps their metrics, not their points).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from plyfile import PlyData
+from scipy.spatial import cKDTree
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from nsplat.data.pointclouds import load_dss_shape  # noqa: E402
+
+RESULTS = REPO / "benchmarks" / "results"
+ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
+
+
+def split_distances(points: np.ndarray, gt: np.ndarray, normals: np.ndarray, far: float) -> dict[str, float]:
+    """Both Chamfer directions of ``points [N,3]`` against ``gt [M,3]`` (with unit ``normals [M,3]``), in units
+    of the ground truth's bounding-box diagonal."""
+    diag = float(np.linalg.norm(gt.max(0) - gt.min(0)))
+    d_pg, nearest = cKDTree(gt).query(points)
+    d_pg = d_pg / diag
+    d_gp = cKDTree(points).query(gt)[0] / diag
+    side = np.einsum("ij,ij->i", points - gt[nearest], normals[nearest])
+    off = d_pg > far
+    return {"points": int(points.shape[0]), "accuracy_mean": float(d_pg.mean()),
+            "accuracy_median": float(np.median(d_pg)), "accuracy_p90": float(np.percentile(d_pg, 90)),
+            "accuracy_p99": float(np.percentile(d_pg, 99)), "off_inside": float(np.mean(off & (side < 0))),
+            "off_outside": float(np.mean(off & (side >= 0))), "completeness_mean": float(d_gp.mean()),
+            "chamfer": float(0.5 * (d_pg.mean() + d_gp.mean()))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--setting", default="cpu-long")
+    ap.add_argument("--tag", default="")
+    ap.add_argument("--shapes", nargs="+", default=["bunny", "teapot", "yoga1", "yoga6"])
+    ap.add_argument("--estimators", nargs="+", default=list(ESTIMATORS))
+    ap.add_argument("--lrs", nargs="+", default=["0.01", "0.03", "0.1"])
+    ap.add_argument("--far", type=float, default=0.05, help="'off the surface': farther than this (units of D)")
+    ap.add_argument("--runs", default=str(REPO / "runs" / "bench"), help="folder of the sweeps' run folders")
+    args = ap.parse_args()
+    table = f"sweep-{args.setting}" + (f"-{args.tag}" if args.tag else "")
+    rows = {}
+    for shape in args.shapes:
+        pc = load_dss_shape(shape)
+        gt, normals = pc.points.double().numpy(), pc.normals.double().numpy()
+        for est in args.estimators:
+            for lr in args.lrs:
+                ply = Path(args.runs) / table / f"{shape}-{est}-lr{float(lr):g}" / "reconstruction.ply"
+                if not ply.is_file():
+                    continue
+                v = PlyData.read(str(ply))["vertex"]
+                pts = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
+                rows[f"{shape}-{est}-lr{float(lr):g}"] = dict(shape=shape, estimator=est, lr=float(lr),
+                                                               **split_distances(pts, gt, normals, args.far))
+    head = (f"| shape | estimator | lr | accuracy mean / median / p90 / p99 | off the surface (> {args.far:g} D): "
+            "inside / outside | completeness mean | Chamfer |")
+    lines = [head, "|---|---|---|---|---|---|---|"]
+    for r in rows.values():
+        lines.append(f"| {r['shape']} | {r['estimator']} | {r['lr']:g} | {r['accuracy_mean']:.4f} / "
+                     f"{r['accuracy_median']:.4f} / {r['accuracy_p90']:.4f} / {r['accuracy_p99']:.4f} | "
+                     f"{100 * r['off_inside']:.1f} % / {100 * r['off_outside']:.1f} % | {r['completeness_mean']:.4f} | "
+                     f"{r['chamfer']:.4f} |")
+    text = "\n".join(lines)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    out = RESULTS / f"estimator_strays-{args.setting}{'-' + args.tag if args.tag else ''}.json"
+    out.write_text(json.dumps({"command": "python benchmarks/estimator_strays.py " + " ".join(sys.argv[1:]),
+                               "far": args.far, "runs": rows, "markdown": text}, indent=1))
+    print(text)
+    print(f"\nwrote {out}")
+
+
+if __name__ == "__main__":
+    main()
