@@ -76,7 +76,7 @@ def test_render_split_renders_with_the_eval_settings_and_restores_training_ones(
             super().__init__()
             self.render_cfg, self.seen = RenderConfig(samples=8), []
 
-        def forward(self, viewmats, Ks, width, height, seed):
+        def forward(self, viewmats, Ks, width, height, seed, draws=1):
             self.seen.append(self.render_cfg.samples)
             B = viewmats.shape[0]
             return torch.zeros(B, 3, height, width), torch.zeros(B, 1, height, width)
