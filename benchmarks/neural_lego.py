@@ -35,6 +35,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from neural_runs import plot_curves, save  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 IMAGES = REPO / "docs" / "images" / "neural"
@@ -100,19 +103,8 @@ def figure(rows: list[dict], title: str, path: Path) -> None:
     ax.imshow(iio.imread(Path(rows[0]["run"]) / "eval_test" / f"{first}_gt.png"))
     ax.set_title("ground truth", fontsize=9)
     ax.axis("off")
-    ax = fig.add_subplot(2, 1, 2)
-    for r in rows:
-        steps = [h["step"] for h in r["history"]]
-        line, = ax.plot(steps, [h["train_psnr"] for h in r["history"]], "-", label=f"{r['name']} train")
-        ax.plot(steps, [h["val_psnr"] for h in r["history"]], "--", color=line.get_color(), label=f"{r['name']} val")
-    ax.set_xlabel("stage-2 step")
-    ax.set_ylabel("PSNR (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=len(rows))
-    fig.suptitle(f"{title}: test view {first} and train/val PSNR over steps")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    plot_curves(fig.add_subplot(2, 1, 2), [(r["name"], r["history"]) for r in rows])
+    save(fig, path, f"{title}: test view {first} and train/val PSNR over steps")
 
 
 def main() -> None:

@@ -24,12 +24,14 @@ import sys
 import time
 from pathlib import Path
 
-import imageio.v3 as iio
 import matplotlib
 import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from neural_runs import plot_curves, save, view_grid  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
@@ -132,30 +134,10 @@ def figure(s2: list[dict], title: str, path: Path, views: int = 4) -> None:
     final = next(r for r in s2 if r["name"] == "final")
     per_view = json.loads((Path(final["run"]) / "eval_test" / "per_view.json").read_text())["views"][:views]
     fig = plt.figure(figsize=(3 * views, 9.5))
-    for i, v in enumerate(per_view):
-        stem = Path(v["name"]).name
-        img = iio.imread(Path(final["run"]) / "eval_test" / f"{stem}.png").astype(np.float32) / 255
-        gt = iio.imread(Path(final["run"]) / "eval_test" / f"{stem}_gt.png").astype(np.float32) / 255
-        for j, (pic, label) in enumerate(((img, f"{v['psnr']:.2f} dB"), (gt, "ground truth"),
-                                          (np.clip(np.abs(img - gt).mean(-1) * 4, 0, 1), "|error| × 4"))):
-            ax = fig.add_subplot(4, views, j * views + i + 1)
-            ax.imshow(pic, cmap="magma" if j == 2 else None, vmin=0, vmax=1, interpolation="nearest")
-            ax.set_title(f"{stem}: {label}", fontsize=8)
-            ax.axis("off")
-    ax = fig.add_subplot(4, 1, 4)
-    for name in dict.fromkeys(r["name"] for r in s2):
-        r = next(x for x in s2 if x["name"] == name)
-        steps = [h["step"] for h in r["history"]]
-        line, = ax.plot(steps, [h["train_psnr"] for h in r["history"]], "-", label=f"{name} train")
-        ax.plot(steps, [h["val_psnr"] for h in r["history"]], "--", color=line.get_color(), label=f"{name} val")
-    ax.set_xlabel("stage-2 step")
-    ax.set_ylabel("PSNR (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=4)
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    view_grid(fig, Path(final["run"]), per_view)
+    firsts = [next(x for x in s2 if x["name"] == name) for name in dict.fromkeys(r["name"] for r in s2)]
+    plot_curves(fig.add_subplot(4, 1, 4), [(r["name"], r["history"]) for r in firsts])
+    save(fig, path, title)
 
 
 def main() -> None:

@@ -69,34 +69,47 @@ def table(rows: list[dict], split: str) -> str:
     return "\n".join(out)
 
 
-def figure(rows: list[dict], split: str, views: int, path: Path, title: str) -> None:
-    last = rows[-1]
-    run = Path(last["run"])
-    per_view = last["per_view"][:views]
-    fig = plt.figure(figsize=(3 * max(views, 2), 9.5))
+def view_grid(fig, run: Path, per_view: list[dict], split: str = "test", rows: int = 4) -> None:
+    """Columns of ``fig`` (a ``rows``-row grid): per held-out view of ``run``, its render, the ground truth and
+    |error| × 4 (rows 1–3; ``per_view`` from the run's ``eval_<split>/per_view.json``)."""
+    views = len(per_view)
     for i, v in enumerate(per_view):
         stem = Path(v["name"]).name
         img = iio.imread(run / f"eval_{split}" / f"{stem}.png").astype(np.float32) / 255
         gt = iio.imread(run / f"eval_{split}" / f"{stem}_gt.png").astype(np.float32) / 255
         for j, (pic, label) in enumerate(((img, f"{v['psnr']:.2f} dB"), (gt, "ground truth"),
                                           (np.clip(np.abs(img - gt).mean(-1) * 4, 0, 1), "|error| × 4"))):
-            ax = fig.add_subplot(4, views, j * views + i + 1)
+            ax = fig.add_subplot(rows, views, j * views + i + 1)
             ax.imshow(pic, cmap="magma" if j == 2 else None, vmin=0, vmax=1, interpolation="nearest")
             ax.set_title(f"{stem}: {label}", fontsize=8)
             ax.axis("off")
-    ax = fig.add_subplot(4, 1, 4)
-    for r in rows:
-        steps = [h["step"] for h in r["history"]]
-        line, = ax.plot(steps, [h["train_psnr"] for h in r["history"]], "-", label=f"{r['label']} train")
-        ax.plot(steps, [h["val_psnr"] for h in r["history"]], "--", color=line.get_color(), label=f"{r['label']} val")
+
+
+def plot_curves(ax, curves: list[tuple[str, list[dict]]]) -> None:
+    """Train (solid) and val (dashed) PSNR over stage-2 steps of each ``(label, history)``."""
+    for label, history in curves:
+        steps = [h["step"] for h in history]
+        line, = ax.plot(steps, [h["train_psnr"] for h in history], "-", label=f"{label} train")
+        ax.plot(steps, [h["val_psnr"] for h in history], "--", color=line.get_color(), label=f"{label} val")
     ax.set_xlabel("stage-2 step")
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=4)
+
+
+def save(fig, path: Path, title: str) -> None:
     fig.suptitle(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
+
+
+def figure(rows: list[dict], split: str, views: int, path: Path, title: str) -> None:
+    """The last run's held-out views (render, ground truth, error) above every run's PSNR curves."""
+    fig = plt.figure(figsize=(3 * max(views, 2), 9.5))
+    view_grid(fig, Path(rows[-1]["run"]), rows[-1]["per_view"][:views], split)
+    plot_curves(fig.add_subplot(4, 1, 4), [(r["label"], r["history"]) for r in rows])
+    save(fig, path, title)
 
 
 def main() -> None:
