@@ -25,7 +25,9 @@ spelled differently (the pre-engine config vocabulary: ``optim.lr`` for every at
 an older version of the fitter are not comparable with new runs (its random streams differ: Chamfer moved
 by up to ±5 % on the bunny); drop them from the JSON to have them re-run.
 
-Writes ``benchmarks/results/estimator_sweep-<setting>.json`` and prints a Markdown table.
+Writes ``benchmarks/results/estimator_sweep-<setting>.json`` (each run's record with its validation curve,
+Chamfer / Hausdorff at its ``log.validate`` steps, while its folder exists) and prints a Markdown table;
+``--curves`` prints the curves too. A seed other than 0 (``--seed``) belongs in its own ``--tag``.
 """
 from __future__ import annotations
 
@@ -90,6 +92,8 @@ def main() -> None:
                             "runs/bench/sweep-<setting>-<tag>/, results to estimator_sweep-<setting>-<tag>.json")
     extra.add_argument("--merge", action="store_true",
                        help="reuse the records of the existing JSON; run only the missing combinations")
+    extra.add_argument("--curves", action="store_true",
+                       help="also print each run's Chamfer / Hausdorff at its validation steps")
     known, rest = extra.parse_known_args()
     sys.argv = [sys.argv[0]] + rest
     args = common_args(__doc__.splitlines()[0])
@@ -124,20 +128,60 @@ def main() -> None:
                 write(path, args, known, previous, runs, reused, "(partial: the sweep is still running)")
     text = write(path, args, known, previous, runs, reused, None)
     print(text)
+    if known.curves:
+        print("\n" + curves_table(runs))
     print(f"\nwrote {path}")
 
 
+def validation_curve(run_dir: Path) -> list[list[float]] | None:
+    """``[[step, chamfer, hausdorff], ...]`` of the run's validation steps (its TensorBoard ``shape/*``
+    scalars, the last write of each step when a run was resumed); ``None`` when the run folder is gone."""
+    if not (run_dir / "tb").is_dir():
+        return None
+    import logging
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    logging.getLogger("tensorboard").setLevel(logging.ERROR)  # a resumed run's purge notice is expected
+    events = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
+    events.Reload()
+    if "shape/chamfer" not in events.Tags()["scalars"]:
+        return None
+    cd = {e.step: e.value for e in events.Scalars("shape/chamfer")}
+    hd = {e.step: e.value for e in events.Scalars("shape/hausdorff")}
+    return [[step, cd[step], hd[step]] for step in sorted(cd) if step in hd]
+
+
 def with_dense_loss(record: dict | None, table: str) -> dict | None:
-    """``record`` with ``train_loss_dense`` added from its run folder (kept when already there or gone)."""
-    if record is None or record.get("train_loss_dense") is not None:
+    """``record`` with ``train_loss_dense`` and ``curve`` (:func:`validation_curve`) added from its run
+    folder (each kept when already there or when the folder is gone)."""
+    if record is None:
         return record
-    loss = dense_train_loss(REPO / "runs" / "bench" / table / record["name"])
+    run_dir = REPO / "runs" / "bench" / table / record["name"]
+    if record.get("curve") is None:
+        curve = validation_curve(run_dir)
+        record = record if curve is None else {**record, "curve": curve}
+    if record.get("train_loss_dense") is not None:
+        return record
+    loss = dense_train_loss(run_dir)
     return record if loss is None else {**record, "train_loss_dense": loss}
 
 
 def criterion(rows: list[tuple[float, dict]]) -> str:
     """The selection key: the dense full-training-set loss when every run has it, else ``final_loss``."""
     return "train_loss_dense" if all(r.get("train_loss_dense") is not None for _, r in rows) else "final_loss"
+
+
+def curves_table(runs: dict) -> str:
+    """Markdown: Chamfer (Hausdorff) of every run with a curve at each of its validation steps."""
+    rows = [(name, r["curve"]) for name, r in runs.items() if r is not None and r.get("curve")]
+    steps = sorted({int(c[0]) for _, curve in rows for c in curve})
+    lines = ["| run | " + " | ".join(f"CD (HD) at step {s}" for s in steps) + " |", "|---|" + "---|" * len(steps)]
+    for name, curve in rows:
+        at = {int(c[0]): c for c in curve}
+        lines.append(f"| {name} | " + " | ".join(f"{fmt(at[s][1])} ({fmt(at[s][2])})" if s in at else "–"
+                                                  for s in steps) + " |")
+    return "\n".join(lines)
 
 
 def write(path: Path, args, known, previous: dict, runs: dict, reused: dict, note: str | None) -> str:
