@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 from nsplat.data.pointclouds import load_dss_shape  # noqa: E402
 
@@ -70,17 +71,10 @@ def split_distances(points: np.ndarray, gt: np.ndarray, normals: np.ndarray, far
 
 def contributions(run_dir: Path) -> np.ndarray:
     """``[N]`` visual contribution of every point of the run's final scene over its training views."""
-    import torch
-
-    from nsplat.config import load_config, read_yaml
-    from nsplat.data.dss import gt_views
+    from estimator_sweep import load_run
     from nsplat.fitting import point_contributions
-    from nsplat.runctx import RunContext
-    from nsplat.tasks.reconstruct import Config, restore
 
-    cfg = load_config(Config, read_yaml(run_dir / "config.yaml"))
-    views = gt_views(load_dss_shape(cfg.data.shape, cfg.data.root or None), cfg.data, cfg.render, cfg.data.views)
-    scene = restore(cfg, RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=cfg.seed))
+    cfg, views, scene = load_run(run_dir)
     return point_contributions(scene, views.viewmats, views.Ks, cfg.data.width, cfg.data.height, cfg.render,
                                seed=cfg.seed).numpy()
 

@@ -43,6 +43,22 @@ ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
 REPO = RESULTS.parents[1]
 
 
+def load_run(run_dir: Path):
+    """A finished reconstruction run: ``(config, its training views (GT images), its final scene)``, on the CPU."""
+    import torch
+
+    sys.path.insert(0, str(REPO))
+    from nsplat.config import load_config, read_yaml
+    from nsplat.data.dss import gt_views
+    from nsplat.data.pointclouds import load_dss_shape
+    from nsplat.runctx import RunContext
+    from nsplat.tasks.reconstruct import Config, restore
+
+    cfg = load_config(Config, read_yaml(run_dir / "config.yaml"))
+    views = gt_views(load_dss_shape(cfg.data.shape, cfg.data.root or None), cfg.data, cfg.render, cfg.data.views)
+    return cfg, views, restore(cfg, RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=cfg.seed))
+
+
 def dense_train_loss(run_dir: Path) -> float | None:
     """L1 loss of the run's final scene on **all** its training views, rendered with the exact dense renderer
     (deterministic, the same for every estimator; cached in ``train_loss_dense.json``). ``None`` when the
@@ -57,19 +73,10 @@ def dense_train_loss(run_dir: Path) -> float | None:
 
     import torch
 
-    sys.path.insert(0, str(REPO))
     from nsplat import render as gateway
-    from nsplat.config import load_config, read_yaml
-    from nsplat.data.dss import gt_views
-    from nsplat.data.pointclouds import load_dss_shape
-    from nsplat.runctx import RunContext
     from nsplat.shading import lambert
-    from nsplat.tasks.reconstruct import Config, restore
 
-    cfg = load_config(Config, read_yaml(run_dir / "config.yaml"))
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
-    views = gt_views(pc, cfg.data, cfg.render, cfg.data.views)
-    scene = restore(cfg, RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=cfg.seed))
+    cfg, views, scene = load_run(run_dir)
     dense = dataclasses.replace(cfg.render, renderer="dense")
     with torch.no_grad():
         shaded = lambert(scene.features, scene.normals, views.viewmats)
