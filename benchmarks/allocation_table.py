@@ -1,9 +1,9 @@
 """What each shipped config allocates and learns ("model only what a scene requires").
 
 For every ``configs/*.yaml`` the script builds the task's model(s) exactly as the task does, without
-data loading or training (point clouds and frames are replaced by placeholders of ``N`` points and
-the config's camera count), and lists every parameter and buffer with its shape, whether it is
-learned, and the floats it costs per point. It writes ``docs/model_allocation.md`` (and prints it).
+data loading or training (:func:`nsplat.allocation.build_config`: placeholders of ``N`` points and the
+config's camera count), and lists every parameter and buffer with its shape, whether it is learned,
+and the floats it costs per point. It writes ``docs/model_allocation.md`` (and prints it).
 
     python benchmarks/allocation_table.py            # writes docs/model_allocation.md
     python benchmarks/allocation_table.py --check    # exit 1 if the doc is out of date
@@ -14,127 +14,17 @@ recognisable); everything else is literal.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
-from typing import Any, Callable
-
-import torch
-from torch import nn
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nsplat.config import load_config, read_yaml  # noqa: E402
-from nsplat.scene import SurfelScene  # noqa: E402
-from nsplat.tasks import TASKS, get_task  # noqa: E402
+from nsplat.allocation import Entry, build_config, inventory  # noqa: E402
+from nsplat.tasks import TASKS  # noqa: E402
 
-#: Placeholder point count; a tensor dimension equal to it is printed as ``N``.
-N_PLACEHOLDER = 1009
 DOC = ROOT / "docs" / "model_allocation.md"
-
-
-@dataclasses.dataclass
-class Entry:
-    """One allocated tensor."""
-
-    module: str
-    name: str
-    shape: tuple[int, ...]
-    learned: bool
-    persistent: bool = True
-
-    @property
-    def per_point(self) -> bool:
-        return N_PLACEHOLDER in self.shape
-
-    def shape_text(self) -> str:
-        return "[" + ", ".join("N" if s == N_PLACEHOLDER else str(s) for s in self.shape) + "]"
-
-    def floats(self) -> int:
-        """Floats per point (per-point tensors) or in total (others)."""
-        n = 1
-        for s in self.shape:
-            n *= 1 if s == N_PLACEHOLDER else s
-        return n
-
-
-def inventory(models: dict[str, nn.Module | None]) -> list[Entry]:
-    """Every parameter and buffer (persistent or not) of ``models`` (``None`` entries allocate nothing)."""
-    out: list[Entry] = []
-    for label, model in models.items():
-        if model is None:
-            continue
-        for mod_name, mod in model.named_modules():
-            prefix = f"{label}.{mod_name}" if mod_name else label
-            for name, p in mod.named_parameters(recurse=False):
-                out.append(Entry(prefix, name, tuple(p.shape), p.requires_grad))
-            for name, b in mod.named_buffers(recurse=False):
-                out.append(Entry(prefix, name, tuple(b.shape), False, name not in mod._non_persistent_buffers_set))
-    return out
-
-
-# ------------------------------------------------------------------------------------------ builders
-def _placeholder_scene(scfg) -> SurfelScene:
-    return SurfelScene(scfg, N_PLACEHOLDER)
-
-
-def build_demo(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    return {}, [f"renders a fixed procedural scene of {cfg.points} points (plain tensors: means, normals, "
-                f"scales, opacities, RGB features); no nn.Module, nothing learned"]
-
-
-def build_reconstruct(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat.tasks import reconstruct
-
-    notes = ["Lambert shading with the paper's fixed camera-relative lights (nothing allocated)",
-             f"N = init.count or the GT point count ({cfg.data.shape}); render: {cfg.render.renderer}"]
-    return reconstruct.build(cfg, "cpu", N_PLACEHOLDER).modules, notes
-
-
-def build_refine(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat.data.views import PosedViews
-    from nsplat.tasks import refine
-
-    count = cfg.data.room.frames if cfg.data.source == "room" else max(1, cfg.data.nerf.limit)
-    C = cfg.scene.channels
-    frames = PosedViews(images=torch.zeros(count, 1, 1, C), viewmats=torch.eye(4).expand(count, 4, 4).clone(),
-                        Ks=torch.eye(3).expand(count, 3, 3).clone(), names=[str(i) for i in range(count)],
-                        masks=torch.ones(count, 1, 1, dtype=torch.bool))
-    modules = refine.build(cfg, _placeholder_scene(cfg.scene), frames).modules
-    modules["model"].frames = None  # data, not model state
-    notes = [f"cameras: {count} frames (source {cfg.data.source}); shading: {cfg.shading.model}"]
-    return modules, notes
-
-
-def build_neural(cfg) -> tuple[dict[str, nn.Module | None], list[str]]:
-    from nsplat import fitting
-    from nsplat.tasks import neural
-
-    stage1 = fitting.build(_placeholder_scene(neural.geometry_scene_config(cfg)), cfg.geometry.optim).modules
-    stage2 = neural.build(cfg, _placeholder_scene(neural.neural_scene_config(cfg))).modules
-    disc = stage2.get("disc")
-    notes = [f"stage 1 (geometry): RGB surfels; stage 2: {cfg.neural.features} learned features per point, "
-             f"U-Net shader, PatchGAN {'on' if disc is not None else 'off (not built)'}",
-             f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"]
-    return {"stage1_scene": stage1["scene"], "stage2": stage2["model"], "discriminator": disc}, notes
-
-
-BUILDERS: dict[str, Callable[[Any], tuple[dict[str, nn.Module | None], list[str]]]] = {
-    "demo": build_demo, "reconstruct": build_reconstruct, "refine": build_refine, "neural": build_neural,
-}
-
-
-def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, Any, dict[str, nn.Module | None],
-                                                                          list[str]]:
-    """``(task, cfg, models, notes)`` of config file ``path`` with dotted ``key=value`` overrides."""
-    raw = read_yaml(path)
-    task = get_task(raw["task"])
-    cfg = load_config(task.Config, raw, overrides)
-    if raw["task"] not in BUILDERS:
-        raise KeyError(f"{path.name}: no allocation builder for task {raw['task']!r} (add one to BUILDERS)")
-    models, notes = BUILDERS[raw["task"]](cfg)
-    return raw["task"], cfg, models, notes
 
 
 def _summary(entries: list[Entry]) -> dict[str, Any]:

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from nsplat.viewer.model import ViewModel
+from nsplat.view_model import ViewModel
 
 FORMATS = ("ply", "npz")
 

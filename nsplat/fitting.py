@@ -30,7 +30,7 @@ from nsplat.ops import tangent_frame
 from nsplat.render import RenderConfig, render, render_views
 from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.shading import lambert
-from nsplat.viewer.runs import cameras_of, surfel_view
+from nsplat.view_model import cameras_of, surfel_view
 
 
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,

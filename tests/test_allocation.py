@@ -3,25 +3,14 @@ a discriminator or per-point opacity/scale allocate none of them (every paramete
 inspected), and the configs that ask for them do allocate them (so the check can fail)."""
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
 
+from nsplat import allocation as AT
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-
-
-def _table():
-    spec = importlib.util.spec_from_file_location("allocation_table", ROOT / "benchmarks" / "allocation_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look the module up while the file executes
-    spec.loader.exec_module(mod)
-    return mod
-
-
-AT = _table()
 
 
 def _entries(config: str, overrides: list[str] | None = None):

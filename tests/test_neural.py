@@ -178,7 +178,7 @@ def test_late_gan_starts_at_its_fraction_with_its_own_schedule(cache, tmp_path):
 def test_eval_draws_average_independent_feature_images(cache, tmp_path):
     """``eval.draws``: an evaluation render's feature image is the mean of that many op draws (draw j with the
     seeds shifted by j·DRAW_STRIDE; draw 0 is the plain render), and the U-Net shades the mean."""
-    from nsplat.tasks.neural import DRAW_STRIDE
+    from nsplat.tasks.neural_model import DRAW_STRIDE
 
     raw = _tiny(cache)
     raw["eval"]["draws"] = 3

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import importlib
 from types import ModuleType
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from nsplat.config import ConfigError
 from nsplat.runctx import RunContext
+
+if TYPE_CHECKING:
+    from nsplat.view_model import ViewModel
 
 TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",
@@ -32,7 +35,9 @@ class Task(Protocol):
     Besides the methods below, a training task has ``build(cfg, ...) -> nsplat.engine.Trainables`` (its
     modules and optimisers; the allocation table builds through it) and a ``step`` function of its own
     signature that the engine calls once per step (``Engine.train(trainables, step)``): tasks keep their
-    own step (GAN, alternating groups and pruning, per-view backward).
+    own step (GAN, alternating groups and pruning, per-view backward). Its ``run`` hands the engine a
+    cheap live-view builder (``Engine.train(..., view=)``: a :class:`nsplat.view_model.ViewModel` of the
+    current state).
     """
 
     Config: type
@@ -45,6 +50,11 @@ class Task(Protocol):
 
     def render(self, cfg: Any, ctx: RunContext) -> Any:
         """The ``render`` command (images or video of the run's latest checkpoint)."""
+
+    def view(self, cfg: Any, ctx: RunContext) -> ViewModel:
+        """The ``view`` and ``export`` commands: the run's latest checkpoint (a task without ``build``:
+        its configured scene) as a :class:`nsplat.view_model.ViewModel` on ``ctx.device``. The viewer
+        calls it through :func:`get_task`; tasks never import :mod:`nsplat.viewer`."""
 
 
 def get_task(name: str) -> ModuleType:

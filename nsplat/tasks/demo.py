@@ -19,6 +19,7 @@ from nsplat.ops.validation import memory_limit
 from nsplat import render as gateway
 from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
+from nsplat.view_model import TrainingCameras, ViewModel
 
 log = logging.getLogger("nsplat.demo")
 
@@ -100,3 +101,12 @@ def run(cfg: Config, ctx: RunContext) -> None:
         ref = gateway.render(*args, dataclasses.replace(rcfg, renderer="dense"))
         err = float((out.image - ref.image).abs().mean())
         log.info("mean abs difference to the dense renderer: %.5f", err)
+
+
+def view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The task contract's ``view``: the demo scene with its orbit cameras, on a white background."""
+    sc = {k: v.to(ctx.device) for k, v in demo_scene(cfg.points, cfg.seed).items()}
+    V, K = orbit_cameras(cfg.views, cfg.resolution)
+    cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.resolution, cfg.resolution)
+    return ViewModel(sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"],
+                     torch.ones(3, device=ctx.device), cameras=cams, task="demo", seed=cfg.seed)

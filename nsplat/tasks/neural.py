@@ -11,7 +11,8 @@ channels and 0 elsewhere) into a feature image that a U-Net shader
 conditional PatchGAN (:class:`nsplat.models.PatchDiscriminator`). Which point attributes stay
 learnable, with their own learning rates, is ``neural.learn``.
 
-Configuration: :mod:`nsplat.tasks.neural_config`; evaluation outputs: :mod:`nsplat.tasks.neural_eval`.
+Configuration: :mod:`nsplat.tasks.neural_config`; the stage-2 networks: :mod:`nsplat.tasks.neural_model`;
+evaluation outputs: :mod:`nsplat.tasks.neural_eval`.
 Both stages run on the engine (:mod:`nsplat.engine`); every render goes through :mod:`nsplat.render`.
 Both run data-parallel under torchrun (:mod:`nsplat.distributed`, docs/distributed.md); rank 0 alone
 writes the run folder and evaluates.
@@ -27,10 +28,9 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
-from torch import nn
 
 from nsplat import distributed
 from nsplat import render as gateway
@@ -45,18 +45,16 @@ from nsplat.engine import Engine, Trainables, checkpoint_rows, latest_payload, o
 from nsplat.fitting import fit
 from nsplat.losses import discriminator_loss, generator_loss
 from nsplat.metrics_image import psnr
-from nsplat.models import PatchDiscriminator, UNet
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks.neural_config import Config, NeuralConfig
-from nsplat.viewer.runs import cameras_of, neural_view
+from nsplat.tasks.neural_model import NeuralRenderer, build_discriminator, neural_view
+from nsplat.view_model import ViewModel, cameras_of
 
 log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
-#: Seed offset between the independent draws of an averaged evaluation render (``eval.draws``).
-DRAW_STRIDE = 1 << 20
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -81,7 +79,7 @@ def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
     return views.to(device)
 
 
-# ---------------------------------------------------------------------------------------------- model
+# ---------------------------------------------------------------------------------------------- scenes
 def geometry_scene_config(cfg: Config) -> SceneConfig:
     """Stage-1 scene: RGB colour (sigmoid) and the stage's learnable attributes."""
     g = cfg.geometry
@@ -93,81 +91,6 @@ def neural_scene_config(cfg: Config) -> SceneConfig:
     """Stage-2 scene: ``C`` raw features; learnable attributes from ``neural.learn``."""
     return SceneConfig(channels=cfg.neural.features, learn=list(cfg.neural.learn), opacity=cfg.geometry.opacity,
                        scale=None, feature_activation="identity")
-
-
-class NeuralRenderer(nn.Module):
-    """Points with learned features → splatted feature image → U-Net → RGB.
-
-    Attributes:
-        scene: :class:`SurfelScene` with ``C`` feature channels.
-        unet: the shader; input channels ``C`` (+1 coverage channel with ``alpha_input``).
-    """
-
-    def __init__(self, scene: SurfelScene, cfg: Config) -> None:
-        super().__init__()
-        n = cfg.neural
-        self.scene = scene
-        self.render_cfg = cfg.render
-        self.alpha_input = n.alpha_input
-        self.residual = n.residual
-        u = n.unet
-        self.unet = UNet(self.cond_channels, 3, depth=u.depth, width=u.width, max_width=u.max_width, norm=u.norm,
-                         dropout=u.dropout, dropout_layers=u.dropout_layers, upsample=u.upsample,
-                         output_range=tuple(u.output_range))
-        if self.residual:
-            nn.init.zeros_(self.unet.head.weight)
-            nn.init.zeros_(self.unet.head.bias)
-        # Feature background: the data background in the first three (colour) channels, 0 elsewhere.
-        bg = torch.zeros(scene.cfg.channels, dtype=scene.means.dtype)
-        k = min(3, scene.cfg.channels)
-        bg[:k] = torch.tensor(cfg.data.background, dtype=bg.dtype)[:k]
-        self.register_buffer("background", bg.to(scene.means.device), persistent=False)
-
-    @property
-    def cond_channels(self) -> int:
-        """Channels of the feature image the U-Net (and the discriminator) sees."""
-        return self.scene.cfg.channels + int(self.alpha_input)
-
-    def feature_image(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                      seed: int | Sequence[int]) -> torch.Tensor:
-        """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``.
-
-        ``seed``: one op seed for all ``B`` cameras (one op call), or ``B`` seeds, one per camera (one
-        call each: a view's samples then do not depend on which other views share its call).
-        """
-        if not isinstance(seed, int):
-            if len(seed) != viewmats.shape[0]:
-                raise ValueError(f"seed: expected {viewmats.shape[0]} per-camera seeds, got {len(seed)}")
-            return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(sd))
-                              for b, sd in enumerate(seed)])
-        s = self.scene
-        out = gateway.render(s.means, s.normals, s.scales, s.opacities, s.features, viewmats, Ks, width, height,
-                             self.render_cfg, seed=seed, background=self.background)
-        img = torch.cat([out.image, out.alpha], -1) if self.alpha_input else out.image
-        return img.permute(0, 3, 1, 2).contiguous()
-
-    def forward(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                seed: int | Sequence[int], draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(rgb [B,3,H,W], feature image [B,C(+1),H,W])``; ``seed`` as in :meth:`feature_image`.
-
-        ``draws``: the feature image is the mean of that many independent op draws (draw ``j`` renders
-        with the seeds shifted by ``j·DRAW_STRIDE``; draw 0 is the single-draw render).
-        """
-        cond = self.feature_image(viewmats, Ks, width, height, seed)
-        for j in range(1, draws):
-            shifted = seed + j * DRAW_STRIDE if isinstance(seed, int) else [s + j * DRAW_STRIDE for s in seed]
-            cond = cond + self.feature_image(viewmats, Ks, width, height, shifted)
-        if draws > 1:
-            cond = cond / draws
-        return self.unet(cond, base=cond[:, :3] if self.residual else None), cond
-
-
-def build_discriminator(cfg: Config, cond_channels: int) -> PatchDiscriminator | None:
-    """The PatchGAN, or ``None`` when ``neural.gan.enabled`` is false (nothing allocated)."""
-    g = cfg.neural.gan
-    if not g.enabled:
-        return None
-    return PatchDiscriminator(cond_channels, 3, width=g.width, layers=g.layers, norm=g.norm)
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
@@ -464,3 +387,10 @@ def render(cfg: Config, ctx: RunContext) -> Path:
     from nsplat.tasks.neural_eval import write_orbit
 
     return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), eval_seed(cfg))
+
+
+def view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras."""
+    model = load_model(cfg, ctx).eval()
+    train = load_views(cfg, "train", ctx.device)
+    return neural_view(model, cameras_of(train.images, train.viewmats, train.Ks), seed=eval_seed(cfg))

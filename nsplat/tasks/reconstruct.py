@@ -23,15 +23,16 @@ from nsplat import distributed, fitting
 from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require_fields
-from nsplat.data.dss import DataConfig, gt_views
+from nsplat.data.dss import DataConfig, cache_file, gt_views, view_cameras
 from nsplat.data.pointclouds import PointCloud, load_dss_shape
-from nsplat.engine import LogConfig, Trainables, checkpoint_rows, write_json
+from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
 from nsplat.fitting import FitConfig, fit
 from nsplat.metrics import point_cloud_distances
 from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.shading import lambert
+from nsplat.view_model import TrainingCameras, ViewModel, surfel_view
 
 log = logging.getLogger(__name__)
 
@@ -225,3 +226,20 @@ def render(cfg: Config, ctx: RunContext) -> list[Path]:
     """Write the held-out PNG renders of the last checkpoint."""
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
     return write_renders(cfg, ctx, pc, restore(cfg, ctx))
+
+
+def view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The task contract's ``view``: the last checkpoint's surfels (shaded as trained) with the training
+    cameras; their GT images only if already rendered (never re-rendered for viewing)."""
+    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    scene = restore(cfg, ctx)
+    V, K = view_cameras(cfg.data.views, pc, cfg.data)
+    cache = cache_file(cfg.data, cfg.render, "train")
+    images = None
+    if cache.is_file():
+        have = torch.load(cache, weights_only=True)
+        images = have[:cfg.data.views] if have.shape[0] >= cfg.data.views else None
+    cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.data.width, cfg.data.height,
+                           None if images is None else images.to(ctx.device))
+    return surfel_view(scene, cams, shading=cfg.optim.shading, render_cfg=cfg.render, task="reconstruct",
+                       seed=op_seed(ctx.seed, "eval"))

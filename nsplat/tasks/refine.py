@@ -43,12 +43,12 @@ from nsplat.engine import (Engine, Trainables, checkpoint_rows, generator, lates
                            write_json)
 from nsplat.filtering import improbable, point_errors
 from nsplat.poses import CameraCorrection, perturb_viewmats, pose_errors, pose_report
-from nsplat.render import RenderConfig
+from nsplat.render import RenderConfig, background_of
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.tasks.refine_config import CAMERA_GROUPS, GROUPS, Config
 from nsplat.sh import SHLighting
-from nsplat.viewer.runs import refine_view
+from nsplat.view_model import TrainingCameras, ViewModel
 
 log = logging.getLogger(__name__)
 
@@ -385,7 +385,7 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
         writer.add_images("render", img.clamp(0, 1), done, dataformats="NHWC")
 
     engine.train(t, lambda k: step(cfg, t, ctx.seed, k), start=start, images=images,
-                 view=lambda: refine_view(model, eval_seed))
+                 view=lambda: refiner_view(model, eval_seed))
     final, img = evaluate_state(model, eval_seed, cfg.optim.batch)
     final.update(seconds=float(t.extra.get("seconds", 0.0)), removed=int(t.extra.get("removed", 0)),
                  steps=cfg.optim.steps, peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
@@ -418,3 +418,22 @@ def render(cfg: Config, ctx: RunContext) -> None:
         ref = model.frames.images[b]
         row = torch.cat([ref, img[b].clamp(0, 1), (img[b] - ref).abs().clamp(0, 1)], 1)
         iio.imwrite(out / f"{b:03d}.png", (row.cpu().numpy() * 255).round().astype(np.uint8))
+
+
+# ---------------------------------------------------------------------------------------- views
+def refiner_view(model: Refiner, seed: int = 0) -> ViewModel:
+    """``model``'s surfels with its shading and its refined cameras (as frusta): the live view."""
+    fr, s, rc = model.frames, model.scene, model.cfg.render
+    with torch.no_grad():
+        V, K = model.camera(torch.arange(len(fr), device=fr.images.device))
+    cams = TrainingCameras(V.detach(), K.detach(), fr.width, fr.height, fr.images)
+    bg = background_of(rc, s.features.shape[1], s.means)
+    return ViewModel(s.means, s.normals, s.scales, s.opacities, s.features,
+                     s.means.new_zeros(s.features.shape[1]) if bg is None else bg,
+                     colours=lambda f, n, v: model.colours(v), render_cfg=rc, cameras=cams, task="refine", seed=seed)
+
+
+def view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The task contract's ``view``: :func:`refiner_view` of the latest checkpoint (eval mode)."""
+    model, _ = restore(cfg, ctx)
+    return refiner_view(model.eval(), seed=op_seed(ctx.seed, "eval"))

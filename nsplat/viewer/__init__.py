@@ -1,13 +1,15 @@
 """Looking at trained runs: the render function, the viser web viewer and the live training view.
 
-* :mod:`nsplat.viewer.model` — :class:`ViewModel` and :func:`render_view` (camera → images).
-* :mod:`nsplat.viewer.runs` — a run folder (any task) or live training state → :class:`ViewModel`.
+* :mod:`nsplat.viewer.model` — :func:`render_view` (a :class:`ViewModel` and a camera → images).
+* :mod:`nsplat.viewer.runs` — a run folder (any task) → :class:`ViewModel`, through the task's ``view``.
 * :mod:`nsplat.viewer.server` — the viser server (``python train.py view --run DIR``).
 * :mod:`nsplat.viewer.live` — the training loops' hook (``python train.py ... viewer=true``).
 * :mod:`nsplat.viewer.commands` — the ``view`` / ``export`` sub-commands.
 
-viser is imported only when a server starts.
+The :class:`ViewModel` itself is built by the tasks (:mod:`nsplat.view_model`): the viewer depends on
+the tasks, never the reverse. viser is imported only when a server starts.
 """
-from nsplat.viewer.model import RenderSettings, TrainingCameras, ViewImages, ViewModel, render_view, to_display
+from nsplat.view_model import TrainingCameras, ViewModel
+from nsplat.viewer.model import RenderSettings, ViewImages, render_view, to_display
 
 __all__ = ["RenderSettings", "TrainingCameras", "ViewImages", "ViewModel", "render_view", "to_display"]

@@ -1,90 +1,24 @@
-"""What the viewer renders: a task-independent :class:`ViewModel` and the pure render function.
+"""How the viewer renders a :class:`~nsplat.view_model.ViewModel`: the pure render function.
 
 :func:`render_view` maps one camera (OpenCV ``viewmat [4,4]`` world→camera, ``K [3,3]`` in pixels,
 ``width``, ``height``) and :class:`RenderSettings` to :class:`ViewImages` (RGB, feature preview,
 alpha, depth). The web server, the live training view and the tests all call it, so "what the
-browser shows" and "a direct render of that camera" are the same computation.
-
-Every task reduces to surfels + optional per-camera shading + an optional image-space shader:
-
-* ``neural``: learned features splatted by the op, turned into RGB by the U-Net;
-* ``reconstruct`` / ``refine`` / ``demo``: RGB surfels (Lambert- or SH-shaded where the task shades).
+browser shows" and "a direct render of that camera" are the same computation. The tasks build the
+:class:`~nsplat.view_model.ViewModel` (:mod:`nsplat.view_model`); this module only renders it.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Literal
+from typing import Literal
 
 import numpy as np
 import torch
 
-from nsplat.render import RenderConfig, render
+from nsplat.render import render
+from nsplat.view_model import ViewModel
 
 Mode = Literal["rgb", "features", "alpha", "depth"]
 MODES: tuple[str, ...] = ("rgb", "features", "alpha", "depth")
-
-
-@dataclasses.dataclass
-class TrainingCameras:
-    """The cameras a model was trained on (shown as frusta).
-
-    Attributes:
-        viewmats: ``[V,4,4]`` OpenCV world→camera. Ks: ``[V,3,3]`` intrinsics in pixels.
-        width, height: their image size. images: ``[V,H,W,3]`` in [0, 1], or ``None``.
-    """
-
-    viewmats: torch.Tensor
-    Ks: torch.Tensor
-    width: int
-    height: int
-    images: torch.Tensor | None = None
-
-
-@dataclasses.dataclass
-class ViewModel:
-    """A renderable trained scene.
-
-    Attributes:
-        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]`` (std-devs), opacities ``[N]``: surfels.
-        features: ``[N,C]`` per-point features (RGB albedo for the surfel tasks, learned for ``neural``).
-        background: ``[C]`` feature background.
-        colours: optional per-camera shading ``f(features [N,C], normals [N,3], viewmat [1,4,4]) → [N,C]``
-            (e.g. Lambert with camera-relative lights); ``None`` splats ``features`` as they are.
-        shader: optional image-space shader ``f(feature image [1,C',H,W]) → RGB [1,3,H,W]`` (the U-Net);
-            ``C' = C + 1`` when ``alpha_input`` (coverage appended). ``None``: RGB = first 3 channels.
-        alpha_input: append the splatted alpha to the shader's input.
-        render_cfg: the run's render settings (:class:`nsplat.render.RenderConfig`); the viewer
-            renders with the sampled op and its own ``samples``/``eps`` (:class:`RenderSettings`).
-        cameras: the training cameras, or ``None``.
-        task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
-    """
-
-    means: torch.Tensor
-    normals: torch.Tensor
-    scales: torch.Tensor
-    opacities: torch.Tensor
-    features: torch.Tensor
-    background: torch.Tensor
-    colours: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-    shader: Callable[[torch.Tensor], torch.Tensor] | None = None
-    alpha_input: bool = False
-    render_cfg: RenderConfig = dataclasses.field(default_factory=RenderConfig)
-    cameras: TrainingCameras | None = None
-    task: str = ""
-    seed: int = 0
-
-    @property
-    def num_points(self) -> int:
-        """Number of surfels N."""
-        return int(self.means.shape[0])
-
-    @torch.no_grad()
-    def rgb_colours(self) -> torch.Tensor:
-        """``[N,3]`` unshaded point colours in [0, 1] (first three feature channels, clamped; a grey
-        copy of the first channel when C < 3) — what a point-cloud export writes as ``red green blue``."""
-        f = self.features.detach()
-        f = f[:, :3] if f.shape[1] >= 3 else f[:, :1].expand(-1, 3)
-        return f.clamp(0, 1)
 
 
 @dataclasses.dataclass

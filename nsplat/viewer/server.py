@@ -19,8 +19,9 @@ import time
 import numpy as np
 import torch
 
+from nsplat.view_model import ViewModel
 from nsplat.viewer.camera import CameraLike, camera_request, pose_from_viewmat, vfov_of
-from nsplat.viewer.model import MODES, RenderSettings, ViewModel, render_display
+from nsplat.viewer.model import MODES, RenderSettings, render_display
 
 log = logging.getLogger(__name__)
 EPS_CHOICES = ("0.001", "0.003", "0.01", "0.03", "0.1", "0.3")
