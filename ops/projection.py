@@ -17,6 +17,7 @@ import dataclasses
 
 import torch
 
+from .fixed_order import expand_fixed
 from .validation import check_geometry, check_projection_numerics, check_range
 
 ALPHA_MAX = 0.99
@@ -91,57 +92,69 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     """
     check_geometry(means, normals, scales, opacities, None, viewmats, Ks)
     check_range(near=near, far=far, lowpass=lowpass)
-    R = viewmats[:, :3, :3]
-    t = viewmats[:, :3, 3]
-    q = torch.einsum("bij,nj->bni", R, means) + t[:, None, :]
-    n = normals / normals.norm(dim=-1, keepdim=True)
+    # Element-wise arithmetic only, on [B,N] operands made explicit by expand_fixed: no matmul, einsum
+    # or sum whose rounding would depend on the thread count or the CPU's vector width (fixed_order.py).
+    B, N = viewmats.shape[0], means.shape[0]
+    nx, ny, nz = normals.unbind(-1)
+    norm = torch.sqrt(nx * nx + ny * ny + nz * nz)
+    n = torch.stack([nx / norm, ny / norm, nz / norm], dim=-1)
     t0, t1 = tangent_frame(n)
-    T0 = torch.einsum("bij,nj->bni", R, t0 * scales[:, :1])
-    T1 = torch.einsum("bij,nj->bni", R, t1 * scales[:, 1:])
-    n_cam = torch.einsum("bij,nj->bni", R, n)
+    s0, s1 = scales.unbind(-1)
+    per_point = torch.stack([*means.unbind(-1), *n.unbind(-1), *(c * s0 for c in t0.unbind(-1)),
+                             *(c * s1 for c in t1.unbind(-1)), opacities], dim=-1)
+    P = expand_fixed(per_point, 0, B).unbind(-1)                                 # 13 x [B,N]
+    C = expand_fixed(torch.cat([viewmats[:, :3, :].reshape(B, 12), Ks.reshape(B, 9)], dim=-1), 1, N).unbind(-1)
+    k00, k01, cx, k10, k11, cy = C[12:18]
 
-    z = q[..., 2]
+    def rotate(v: tuple[torch.Tensor, ...]) -> list[torch.Tensor]:
+        return [C[4 * i] * v[0] + C[4 * i + 1] * v[1] + C[4 * i + 2] * v[2] for i in range(3)]
+
+    q = [c + C[4 * i + 3] for i, c in enumerate(rotate(P[0:3]))]
+    n_cam = rotate(P[3:6])
+    T0 = rotate(P[6:9])
+    T1 = rotate(P[9:12])
+    opac = P[12]
+
+    z = q[2]
     in_range = (z >= near) & (z <= far)
     zs = torch.where(in_range, z, torch.ones_like(z))
     # culled points: zero tangent axes and centre so that their discarded intermediates stay finite
     # (otherwise huge off-range coordinates can overflow float32 and poison the gradients with NaN)
-    keep = in_range[..., None]
-    T0 = torch.where(keep, T0, torch.zeros_like(T0))
-    T1 = torch.where(keep, T1, torch.zeros_like(T1))
-    q = torch.where(keep, q, torch.zeros_like(q))
-    x_n, y_n = q[..., 0] / zs, q[..., 1] / zs
-    K2 = Ks[:, None, :2, :2]
-    uv = torch.stack([x_n, y_n], dim=-1)
-    means2d = torch.einsum("bnij,bnj->bni", K2.expand(-1, q.shape[1], -1, -1), uv) + Ks[:, None, :2, 2]
-    # d(x/z, y/z)/dX applied to the tangent axes, then K's 2x2 block.
-    def dproj(T: torch.Tensor) -> torch.Tensor:
-        return torch.stack([(T[..., 0] - x_n * T[..., 2]) / zs, (T[..., 1] - y_n * T[..., 2]) / zs], dim=-1)
+    zero = torch.zeros_like(z)
+    T0 = [torch.where(in_range, c, zero) for c in T0]
+    T1 = [torch.where(in_range, c, zero) for c in T1]
+    q = [torch.where(in_range, c, zero) for c in q]
+    x_n, y_n = q[0] / zs, q[1] / zs
+    means2d = torch.stack([k00 * x_n + k01 * y_n + cx, k10 * x_n + k11 * y_n + cy], dim=-1)
 
-    Jn = torch.stack([dproj(T0), dproj(T1)], dim=-1)  # [B,N,2,2], columns = tangent axes
-    J = K2 @ Jn
-    detJ = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-    cov = J @ J.transpose(-1, -2)
-    s00 = cov[..., 0, 0] + lowpass
-    s01 = cov[..., 0, 1]
-    s11 = cov[..., 1, 1] + lowpass
+    # d(x/z, y/z)/dX applied to the tangent axes (columns of Jn), then K's 2x2 block.
+    def dproj(T: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        return (T[0] - x_n * T[2]) / zs, (T[1] - y_n * T[2]) / zs
+
+    (a0, a1), (b0, b1) = dproj(T0), dproj(T1)                                   # Jn = [[a0, b0], [a1, b1]]
+    j00, j01 = k00 * a0 + k01 * a1, k00 * b0 + k01 * b1
+    j10, j11 = k10 * a0 + k11 * a1, k10 * b0 + k11 * b1
+    detJ = j00 * j11 - j01 * j10
+    s00 = (j00 * j00 + j01 * j01) + lowpass
+    s01 = j00 * j10 + j01 * j11
+    s11 = (j10 * j10 + j11 * j11) + lowpass
     det = s00 * s11 - s01 * s01
-    grads = torch.is_grad_enabled() and any(t.requires_grad for t in (means, normals, scales, viewmats, Ks))
+    grads = torch.is_grad_enabled() and any(x.requires_grad for x in (means, normals, scales, viewmats, Ks))
     check_projection_numerics(in_range=in_range, detJ=detJ, det=det, means2d=means2d, lowpass=float(lowpass),
                               differentiable=grads)
     valid = in_range & (detJ != 0) & (det > 0)
     dets = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([s11 / dets, -s01 / dets, s00 / dets], dim=-1)
-    amps = torch.where(valid, opacities[None, :] * detJ.abs() / dets.sqrt(), torch.zeros_like(det))
+    amps = torch.where(valid, opac * detJ.abs() / dets.sqrt(), torch.zeros_like(det))
     half_tr = 0.5 * (s00 + s11)
     sigma2 = half_tr + torch.sqrt(torch.clamp(half_tr * half_tr - dets, min=0.0))
-    zero = torch.zeros_like
     return Projected(
-        means2d=torch.where(valid[..., None], means2d, zero(means2d)),
-        conics=torch.where(valid[..., None], conics, zero(conics)),
+        means2d=torch.where(valid[..., None], means2d, torch.zeros_like(means2d)),
+        conics=torch.where(valid[..., None], conics, torch.zeros_like(conics)),
         amps=amps,
-        normals_cam=n_cam,
-        plane_offsets=(n_cam * q).sum(-1),
+        normals_cam=torch.stack(n_cam, dim=-1),
+        plane_offsets=n_cam[0] * q[0] + n_cam[1] * q[1] + n_cam[2] * q[2],
         depths=z,
-        sigma2=torch.where(valid, sigma2, zero(sigma2)),
+        sigma2=torch.where(valid, sigma2, torch.zeros_like(sigma2)),
         valid=valid,
     )

@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from plyfile import PlyData, PlyElement
 
 torch.set_num_threads(2)
 
@@ -36,6 +39,28 @@ def make_cameras(B: int, width: int, height: int, dtype: torch.dtype = torch.flo
     f = focal if focal is not None else 1.1 * max(width, height)
     Ks = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=dtype).repeat(B, 1, 1)
     return viewmats, Ks
+
+
+def write_dss_ply(path: Path, points: int = 600, seed: int = 0) -> Path:
+    """A small DSS-style point cloud at ``path``: binary little-endian PLY with float ``x y z nx ny nz``
+    vertices and an empty ``face`` element, as the published DSS files (``dss_pointclouds/*.ply``).
+    The points lie on a slightly squashed unit-size ellipsoid with its outward normals."""
+    g = np.random.default_rng(seed)
+    d = g.normal(size=(points, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    axes = np.array([0.5, 0.4, 0.45])
+    xyz = d * axes
+    nrm = d / axes
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    vertex = np.empty(points, dtype=[(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
+    for i, k in enumerate("xyz"):
+        vertex[k], vertex[f"n{k}"] = xyz[:, i], nrm[:, i]
+    face = np.empty(0, dtype=[("vertex_indices", "O")])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face", val_types={"vertex_indices": "i4"},
+                                                                        len_types={"vertex_indices": "u1"})],
+            text=False, byte_order="<").write(str(path))
+    return path
 
 
 @pytest.fixture

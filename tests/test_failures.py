@@ -22,9 +22,9 @@ from nsplat.cli import main as cli_main
 from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.pointclouds import read_oriented_ply
 from nsplat.scene import SceneConfig, SurfelScene
+from tests.conftest import write_dss_ply
 
 ROOT = Path(__file__).resolve().parents[1]
-BUNNY = ROOT.parent / "shared" / "data" / "dss_pointclouds" / "bunny-8000.ply"
 
 
 # ------------------------------------------------------------------------------------------ datasets
@@ -86,11 +86,12 @@ def test_nerf_corrupt_image_names_the_image(tmp_path, damage):
 
 @pytest.mark.parametrize("damage", ["truncated", "header_only", "garbage"])
 def test_corrupt_point_cloud_names_the_file(tmp_path, damage):
-    data = BUNNY.read_bytes()
+    intact = write_dss_ply(tmp_path / "intact.ply")
+    data = intact.read_bytes()
     bad = tmp_path / "bunny.ply"
     bad.write_bytes({"truncated": data[: len(data) // 2], "header_only": data[:200],
                      "garbage": b"garbage\n" * 10}[damage])
-    assert read_oriented_ply(BUNNY).points.shape[0] > 0  # the intact file reads
+    assert read_oriented_ply(intact).points.shape[0] > 0  # the intact file reads
     with pytest.raises(ValueError, match=re.escape(str(bad))):
         read_oriented_ply(bad)
 
@@ -202,8 +203,10 @@ EPOCHS, KILL_AT = 6, 4
 
 
 def _tiny_config(tmp: Path) -> Path:
+    write_dss_ply(tmp / "data" / "dss_pointclouds" / "bunny-8000.ply")  # small synthetic stand-in
     cfg = {"task": "reconstruct", "seed": 0,
-           "data": {"shape": "bunny", "views": 2, "width": 16, "height": 16, "cache_dir": str(tmp / "cache")},
+           "data": {"shape": "bunny", "root": str(tmp / "data"), "views": 2, "width": 16, "height": 16,
+                    "cache_dir": str(tmp / "cache")},
            "init": {"count": 48}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
                                            "opacity": 1.0},
            "render": {"renderer": "splat", "samples": 4},

@@ -279,6 +279,53 @@ def test_deterministic_backward_is_bitwise_reproducible_across_runs_and_threads(
             assert torch.equal(a, b), f"{name}: gradients differ bitwise (threads={threads})"
 
 
+def _capabilities() -> list[str]:
+    """ATen CPU capabilities this CPU can run, from ``default`` up to the detected one (x86-64:
+    ``default``, ``avx2``, ``avx512``; forcing one the CPU lacks would crash with an illegal instruction)."""
+    levels = ["DEFAULT", "AVX2", "AVX512"]
+    top = torch.backends.cpu.get_cpu_capability()
+    return [c.lower() for c in (levels[: levels.index(top) + 1] if top in levels else ["DEFAULT", top])]
+
+
+def test_op_is_bitwise_identical_across_threads_and_cpu_capabilities(tmp_path):
+    """The documented promise (docs/op.md §4): with ``deterministic=True`` the forward (samples, π, image,
+    alpha, depth) and every gradient are bitwise identical for 1, 2 and 3 threads and under each ATen CPU
+    capability of this CPU (vector width: the projection uses element-wise arithmetic only, and the
+    native code is compiled once, without ``-march=native``)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    sc = make_scene(400, 3, dtype=torch.float32, scale=(0.02, 0.08))
+    V, K = make_cameras(2, 40, 30, dtype=torch.float32)
+    g = torch.Generator().manual_seed(1)
+    case = {**sc, "viewmats": V, "Ks": K, "width": 40, "height": 30,
+            "background": torch.full((3,), 0.3), **{k: torch.randn(shape, generator=g)
+                                                    for k, shape in (("wi", (2, 30, 40, 3)), ("wa", (2, 30, 40, 1)),
+                                                                     ("wd", (2, 30, 40, 1)))}}
+    torch.save(case, tmp_path / "case.pt")
+    root = Path(__file__).resolve().parents[1]
+    runs = {}
+    for cap in _capabilities():
+        env = dict(os.environ, ATEN_CPU_CAPABILITY=cap, PYTHONPATH=str(root))
+        r = subprocess.run([sys.executable, "-m", "tests.determinism_probe", str(tmp_path / "case.pt")], cwd=root,
+                           env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+        got = json.loads(r.stdout.strip().splitlines()[-1])
+        assert got["capability"].lower() == cap, got["capability"]
+        runs[cap] = got["digests"]
+    assert len(runs) >= 2  # default and at least the CPU's own vector width (x86-64: avx2 or avx512)
+    ref_cap = next(iter(runs))
+    for cap, digests in runs.items():
+        for key, fields in digests.items():
+            setting = key.split("/", 1)[1]
+            want = runs[ref_cap][f"1/{setting}"]
+            diff = [f for f in fields if fields[f] != want[f]]
+            assert not diff, f"{diff} differ: {cap} at {key} vs {ref_cap} at 1 thread"
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("estimator,composite", [("ht", "alpha"), ("paper", "alpha"), ("sampled", "additive"),
                                                  ("ht", "additive")])

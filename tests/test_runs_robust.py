@@ -20,6 +20,7 @@ from nsplat.cli import main as cli_main
 from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.runctx import RunLock
 from nsplat.tasks.demo import Config as DemoConfig
+from tests.conftest import write_dss_ply
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ["--config", str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6", "views=1", "samples=2"]
@@ -46,9 +47,18 @@ def one_line_error(err: str) -> str:
     return lines[0]
 
 
+def _fixture_data(tmp: Path) -> Path:
+    """A data folder with a small synthetic DSS bunny (written once per test folder)."""
+    root = tmp / "data"
+    if not (root / "dss_pointclouds" / "bunny-8000.ply").exists():
+        write_dss_ply(root / "dss_pointclouds" / "bunny-8000.ply")
+    return root
+
+
 def _tiny_reconstruct(tmp: Path, epochs: int = 3, name: str = "tiny.yaml") -> Path:
     cfg = {"task": "reconstruct", "seed": 0,
-           "data": {"shape": "bunny", "views": 2, "width": 12, "height": 12, "cache_dir": str(tmp / "cache")},
+           "data": {"shape": "bunny", "root": str(_fixture_data(tmp)), "views": 2, "width": 12, "height": 12,
+                    "cache_dir": str(tmp / "cache")},
            "init": {"count": 40}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
                                            "opacity": 1.0},
            "render": {"renderer": "splat", "samples": 3},
