@@ -9,6 +9,7 @@ Usage::
     python train.py render --run runs/lego
     python train.py view --run runs/lego                 # web viewer (nsplat/viewer), --help for options
     python train.py export --run runs/lego --format ply  # or npz
+    python train.py data fetch lego --resolution 400     # datasets into $NSPLAT_DATA (nsplat/data/commands.py)
     python train.py --config configs/lego.yaml viewer=true   # live view while training
     torchrun --nproc_per_node=2 train.py --config configs/lego.yaml   # data-parallel (docs/distributed.md)
 
@@ -67,8 +68,8 @@ def _command(argv: list[str]) -> tuple[str, list[str]]:
     if argv and argv[0] in COMMANDS:
         return argv[0], argv[1:]
     if argv and not argv[0].startswith("-") and "=" not in argv[0]:
-        raise UsageError(f"unknown command {argv[0]!r}; valid commands: {', '.join(COMMANDS + ('view', 'export'))} "
-                         f"(overrides are key=value)")
+        valid = ", ".join(COMMANDS + ("view", "export", "data"))
+        raise UsageError(f"unknown command {argv[0]!r}; valid commands: {valid} (overrides are key=value)")
     return "train", argv
 
 
@@ -133,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in ("view", "export"):  # own options: nsplat/viewer/commands.py
         from nsplat.viewer.commands import main as viewer_main
         return viewer_main(argv[0], argv[1:])
+    if argv and argv[0] == "data":  # own options: nsplat/data/commands.py
+        from nsplat.data.commands import main as data_main
+        return data_main(argv[1:], prog=f"{_prog()} data")
     try:
         args = _parse(argv)
         if args.command == "train":

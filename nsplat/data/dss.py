@@ -40,7 +40,7 @@ class DataConfig:
     """Ground-truth images.
 
     Attributes:
-        shape: a DSS shape (bunny, teapot, yoga1, yoga6). root: data folder ("" = ``<repo>/../shared/data``).
+        shape: a DSS shape (bunny, teapot, yoga1, yoga6). root: data folder ("" = :func:`nsplat.data.paths.data_root`).
         views: number of training views. width, height: image size in pixels.
         fov_deg: horizontal field of view. distance: camera distance from the object centre, in units of
             the enclosing-sphere radius. view_seed: seed of the view directions.

@@ -1,7 +1,7 @@
 """The DSS shape-reconstruction point clouds (bunny, teapot, yoga1, yoga6) with normals, via plyfile.
 
-The files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat.data.paths.data_root`). Each is a PLY
-with a ``vertex`` element carrying ``x y z nx ny nz``.
+The files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat.data.paths.data_root`;
+``nsplat data fetch dss`` downloads them there). Each is a PLY with a ``vertex`` element carrying ``x y z nx ny nz``.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ DSS_SHAPES: dict[str, str] = {
 
 
 def default_data_root() -> Path:
-    """The shared, read-only data folder (:func:`nsplat.data.paths.data_root`)."""
+    """The data folder (:func:`nsplat.data.paths.data_root`)."""
     return data_root()
 
 
@@ -129,7 +129,10 @@ def load_dss_shape(name: str, root: str | Path | None = None, dtype: torch.dtype
     """
     if name not in DSS_SHAPES:
         raise ValueError(f"shape: unknown DSS shape {name!r}; expected one of {sorted(DSS_SHAPES)}")
-    folder = Path(root) if root else default_data_root()
-    pc = read_oriented_ply(folder / "dss_pointclouds" / DSS_SHAPES[name], dtype=dtype)
+    path = (Path(root) if root else default_data_root()) / "dss_pointclouds" / DSS_SHAPES[name]
+    if not path.is_file():
+        raise FileNotFoundError(f"no DSS point cloud at {path}; download them with `nsplat data fetch dss` "
+                                f"(into $NSPLAT_DATA, else ~/.local/share/nsplat)")
+    pc = read_oriented_ply(path, dtype=dtype)
     pc.name = name
     return pc

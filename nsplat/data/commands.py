@@ -1,0 +1,126 @@
+"""``nsplat data fetch|prepare`` (also ``python train.py data ...`` and ``python -m nsplat.data ...``).
+
+Usage::
+
+    nsplat data fetch lego --resolution 400     # NeRF-synthetic lego, plus the 400² copy configs/lego.yaml uses
+    nsplat data fetch dss                       # the four DSS point clouds (configs/reconstruct_*.yaml)
+    nsplat data prepare lego --resolution 200   # another downscale of a fetched lego
+    nsplat data fetch lego --archive ~/Downloads/nerf_synthetic.zip   # a copy downloaded by hand
+
+Data goes to ``$NSPLAT_DATA`` (default ``$XDG_DATA_HOME/nsplat``, i.e. ``~/.local/share/nsplat``) or
+``--root``. An interrupted download resumes when the same command runs again. Sources, checksums and what
+is verified: docs/data.md. Errors print one line on stderr and exit with code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from nsplat.data.fetch import DATASETS, FetchError, fetch
+from nsplat.data.paths import data_root
+from nsplat.data.prepare import prepare
+
+#: Environment variable that replaces the published base URLs (like ``--mirror``).
+MIRROR_ENV = "NSPLAT_DATA_MIRROR"
+
+
+class UsageError(Exception):
+    """A command line that cannot be parsed."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser that raises :class:`UsageError` instead of printing usage and exiting."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{self.prog}: {message}")
+
+
+def _parser(prog: str) -> argparse.ArgumentParser:
+    p = _Parser(prog=prog, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="action", required=True, metavar="{fetch,prepare}", parser_class=_Parser)
+    f = sub.add_parser("fetch", help="download, verify and unpack datasets into the data root")
+    f.add_argument("datasets", nargs="+", choices=sorted(DATASETS), metavar="DATASET",
+                   help=f"one or more of: {', '.join(sorted(DATASETS))}")
+    f.add_argument("--resolution", type=int, default=None, metavar="N",
+                   help="lego: also write the N-pixel copy nerf_synthetic/lego_N (configs/lego.yaml uses 400)")
+    f.add_argument("--mirror", default=os.environ.get(MIRROR_ENV) or None, metavar="URL",
+                   help=f"fetch every file as URL/<file name> instead of from its published source "
+                        f"(default: ${MIRROR_ENV})")
+    f.add_argument("--sha256", default=None, metavar="HEX", help="lego: require this sha256 of nerf_synthetic.zip")
+    f.add_argument("--archive", type=Path, default=None, metavar="FILE",
+                   help="lego: use this nerf_synthetic.zip (downloaded by hand) instead of downloading")
+    pr = sub.add_parser("prepare", help="write a downscaled copy of a fetched NeRF-synthetic scene")
+    pr.add_argument("scene", choices=["lego"], help="the fetched scene")
+    pr.add_argument("--resolution", type=int, required=True, metavar="N", help="output width in pixels")
+    for q in (f, pr):
+        q.add_argument("--root", type=Path, default=None, help="data folder (default: $NSPLAT_DATA, else "
+                                                              "$XDG_DATA_HOME/nsplat or ~/.local/share/nsplat)")
+        q.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Option combinations that argparse does not check."""
+    if args.resolution is not None and args.resolution < 1:
+        raise UsageError(f"--resolution: expected a positive number of pixels, got {args.resolution}")
+    if args.action != "fetch":
+        return
+    if "lego" not in args.datasets:
+        for flag in ("resolution", "sha256", "archive"):
+            if getattr(args, flag) is not None:
+                raise UsageError(f"--{flag} applies to lego only")
+    if args.sha256 is not None and (len(args.sha256) != 64 or any(c not in "0123456789abcdefABCDEF"
+                                                                  for c in args.sha256)):
+        raise UsageError(f"--sha256: expected 64 hexadecimal digits, got {args.sha256!r}")
+
+
+def _fetch(args: argparse.Namespace, root: Path) -> None:
+    for name in dict.fromkeys(args.datasets):
+        lego = name == "lego"
+        if lego and args.resolution is not None:
+            scaled = root / f"{DATASETS[name].dest}_{args.resolution}"
+            if scaled.is_dir():  # the copy the configs read is there; the originals are not needed
+                print(f"{name}_{args.resolution}: already in {scaled}")
+                continue
+        done = fetch(name, root, mirror=args.mirror, sha256=args.sha256 if lego else None,
+                     archive=args.archive if lego else None, progress=not args.quiet)
+        print(f"{name}: {'already in' if done.already else 'fetched into'} {done.dest}")
+        for rec in done.files:
+            if rec["checksum"] != "verified":
+                print(f"  {rec['file']}: sha256 {rec['sha256']} ({rec['bytes']} bytes); no checksum is published for "
+                      f"it, so only its zip CRC-32s and the scene's files were checked (--sha256 {rec['sha256']} "
+                      f"requires this file next time)")
+        if lego and args.resolution is not None:
+            _prepare(done.dest, args.resolution, not args.quiet)
+
+
+def _prepare(src: Path, resolution: int, progress: bool) -> None:
+    dest, already = prepare(src, resolution, progress=progress)
+    print(f"{dest.name}: {'already in' if already else 'written to'} {dest}")
+
+
+def main(argv: list[str], prog: str = "nsplat data") -> int:
+    """Run ``data fetch`` or ``data prepare`` with ``argv``; returns the exit status (0, 2 user error,
+    130 interrupted)."""
+    try:
+        args = _parser(prog).parse_args(argv)
+        _check(args)
+        root = (args.root or data_root()).expanduser().absolute()
+        if args.action == "fetch":
+            _fetch(args, root)
+        else:
+            _prepare(root / DATASETS[args.scene].dest, args.resolution, not args.quiet)
+    except UsageError as exc:
+        print(f"usage error: {exc} (see {prog} --help)", file=sys.stderr)
+        return 2
+    except FetchError as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; run the same command again to resume the download", file=sys.stderr)
+        return 130
+    if root != data_root().expanduser().absolute():
+        print(f"note: set NSPLAT_DATA={root} so that the configs and loaders find this data")
+    return 0

@@ -1,0 +1,299 @@
+"""``nsplat data fetch|prepare`` against a local HTTP server on 127.0.0.1: a full fetch that the loaders read,
+resume after a cut-off download, checksum mismatch, full disk, and the command line's one-line errors."""
+from __future__ import annotations
+
+import dataclasses
+import errno
+import hashlib
+import http.server
+import io
+import json
+import os
+import subprocess
+import sys
+import threading
+import zipfile
+from pathlib import Path
+from typing import Iterator
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+
+from nsplat import cli
+from nsplat.data import fetch as fetch_mod
+from nsplat.data import prepare as prepare_mod
+from nsplat.data.nerf_synthetic import SPLITS, load_split
+from nsplat.data.paths import data_root, resolve
+from nsplat.data.pointclouds import load_dss_shape
+
+REPO = Path(__file__).resolve().parents[1]
+SIDE = 8  # fixture image side; prepared at 4
+
+
+def _png(seed: int) -> bytes:
+    """An 8×8 RGBA PNG with opaque, half-transparent and transparent pixels."""
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, 256, (SIDE, SIDE, 4), dtype=np.uint8)
+    img[:2, :, 3] = 0
+    img[2:4, :, 3] = 128
+    img[4:, :, 3] = 255
+    return iio.imwrite("<bytes>", img, extension=".png")
+
+
+def _lego_zip() -> bytes:
+    """A NeRF-synthetic-style ``nerf_synthetic.zip``: ``nerf_synthetic/lego`` with 2 frames per split, another
+    scene and macOS metadata that must not be extracted."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for s, split in enumerate(SPLITS):
+            frames = []
+            for i in range(2):
+                c2w = [[1.0, 0.0, 0.0, 0.1 * i], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
+                frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0125, "transform_matrix": c2w})
+                zf.writestr(f"nerf_synthetic/lego/{split}/r_{i}.png", _png(10 * s + i))
+            zf.writestr(f"nerf_synthetic/lego/transforms_{split}.json",
+                        json.dumps({"camera_angle_x": 0.6911, "frames": frames}))
+        zf.writestr("nerf_synthetic/ship/transforms_train.json", "{}")
+        zf.writestr("__MACOSX/nerf_synthetic/lego/._transforms_train.json", "junk")
+    return buf.getvalue()
+
+
+def _ply(n: int) -> bytes:
+    """A binary PLY with ``n`` oriented vertices."""
+    rng = np.random.default_rng(n)
+    v = np.zeros(n, dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
+    for k in ("x", "y", "z"):
+        v[k] = rng.normal(size=n)
+    v["nz"] = 1.0
+    buf = io.BytesIO()
+    PlyData([PlyElement.describe(v, "vertex")]).write(buf)
+    return buf.getvalue()
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+class Server:
+    """A threaded HTTP server on 127.0.0.1 serving ``files`` with ``Range`` support. ``cut[name] = n`` makes
+    the next GET of ``name`` announce the full length but send ``n`` bytes and close; ``requests`` records
+    ``(name, Range header)``. Stops on exit, and by itself after a minute at most."""
+
+    def __init__(self, files: dict[str, bytes]) -> None:
+        self.files, self.cut, self.requests = files, {}, []
+        server = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+                name = self.path.lstrip("/")
+                server.requests.append((name, self.headers.get("Range")))
+                if name not in server.files:
+                    self.send_error(404)
+                    return
+                data = server.files[name]
+                start = int(self.headers["Range"][len("bytes="):].rstrip("-")) if self.headers.get("Range") else 0
+                self.send_response(206 if start else 200)
+                self.send_header("Content-Type", "application/octet-stream")
+                self.send_header("Content-Length", str(len(data) - start))
+                if start:
+                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+                self.end_headers()
+                self.wfile.write(data[start:start + server.cut.pop(name, len(data))])
+
+            def log_message(self, *args: object) -> None:
+                """Quiet."""
+
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        self.watchdog = threading.Timer(60.0, self.httpd.shutdown)
+
+    def __enter__(self) -> Server:
+        self.thread.start()
+        self.watchdog.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.watchdog.cancel()
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join(timeout=5)
+
+
+DSS_FILES = {name: _ply(20 + i) for i, name in enumerate(
+    ("bunny-8000.ply", "teapot_normal_dense.ply", "yoga1_out.ply", "yoga6_out.ply"))}
+
+
+@pytest.fixture
+def server(monkeypatch: pytest.MonkeyPatch) -> Iterator[Server]:
+    """The fixture archive and point clouds on a local server; the DSS manifest pinned to the fixtures' hashes."""
+    dss = fetch_mod.DATASETS["dss"]
+    monkeypatch.setitem(fetch_mod.DATASETS, "dss", dataclasses.replace(dss, files=tuple(
+        dataclasses.replace(r, sha256=_sha(DSS_FILES[r.name])) for r in dss.files)))
+    with Server({"nerf_synthetic.zip": _lego_zip(), **DSS_FILES}) as srv:
+        yield srv
+
+
+def _run(capsys: pytest.CaptureFixture, *argv: str) -> tuple[int, str, list[str]]:
+    """``nsplat data ...`` in-process: exit code, stdout, stderr lines."""
+    code = cli.main(["data", *argv])
+    out, err = capsys.readouterr()
+    return code, out, err.splitlines()
+
+
+def _files(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")) if root.exists() else []
+
+
+def test_fetch_lego_and_prepare_give_a_loadable_scene(server, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("NSPLAT_DATA", str(tmp_path / "data"))
+    code, out, err = _run(capsys, "fetch", "lego", "--resolution", "4", "--mirror", server.url)
+    assert code == 0 and err == []
+    lego, lego4 = data_root() / "nerf_synthetic" / "lego", data_root() / "nerf_synthetic" / "lego_4"
+    assert f"lego: fetched into {lego}" in out and f"lego_4: written to {lego4}" in out
+    assert f"sha256 {_sha(server.files['nerf_synthetic.zip'])}" in out and "no checksum is published" in out
+    assert "note:" not in out  # the data went to $NSPLAT_DATA
+    assert sorted(p.name for p in (tmp_path / "data" / "nerf_synthetic").iterdir()) == ["lego", "lego_4"]
+    assert sorted(p.name for p in lego.iterdir()) == ["SOURCE.json", "test", "train", "transforms_test.json",
+                                                      "transforms_train.json", "transforms_val.json", "val"]
+    assert json.loads((lego / "SOURCE.json").read_text())["files"][0]["checksum"] == "none published"
+    assert resolve("$NSPLAT_DATA/nerf_synthetic/lego_4") == lego4
+    for split in SPLITS:
+        small = load_split(lego4, split)
+        assert small.images.shape == (2, 4, 4, 3)
+        # premultiplied area averaging: compositing the 4² copy equals area-averaging the composited 8² original
+        ref = load_split(lego, split, resolution=4)
+        assert torch.allclose(small.images, ref.images, atol=2.5 / 255) and torch.allclose(small.Ks, ref.Ks)
+        assert torch.allclose(small.masks, ref.masks, atol=1 / 255)
+    before = len(server.requests)
+    code, out, _ = _run(capsys, "fetch", "lego", "--resolution", "4", "--mirror", server.url)
+    assert code == 0 and f"lego_4: already in {lego4}" in out and len(server.requests) == before
+
+
+def test_cut_off_download_resumes_with_a_range_request(server, tmp_path, capsys):
+    root, size = tmp_path / "data", len(server.files["nerf_synthetic.zip"])
+    server.cut["nerf_synthetic.zip"] = size // 2
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: download of ")
+    assert f"cut off after {size // 2} of {size} bytes" in err[0] and "resume" in err[0]
+    assert _files(root) == ["nerf_synthetic", "nerf_synthetic/lego.part", "nerf_synthetic/lego.part/nerf_synthetic.zip.part"]
+    code, out, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
+    assert code == 0 and err == [] and f"note: set NSPLAT_DATA={root}" in out
+    assert server.requests[-1] == ("nerf_synthetic.zip", f"bytes={size // 2}-")
+    assert not (root / "nerf_synthetic" / "lego.part").exists()
+    assert load_split(root / "nerf_synthetic" / "lego", "train").images.shape == (2, SIDE, SIDE, 3)
+
+
+def test_checksum_mismatch_is_one_line_and_leaves_nothing(server, tmp_path, capsys):
+    root = tmp_path / "data"
+    good = server.files["yoga1_out.ply"]
+    server.files["yoga1_out.ply"] = good[:-4] + b"\0\0\0\0"
+    code, _, err = _run(capsys, "fetch", "dss", "--root", str(root), "--mirror", server.url)
+    assert code == 2 and len(err) == 1
+    assert "checksum mismatch for yoga1_out.ply" in err[0] and _sha(good) in err[0]
+    assert _sha(server.files["yoga1_out.ply"]) in err[0]
+    assert _files(root) == []
+    wrong = "0" * 64
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url, "--sha256", wrong)
+    assert code == 2 and len(err) == 1 and f"expected sha256 {wrong}" in err[0] and _files(root) == []
+
+
+def test_full_disk_is_one_line_and_leaves_nothing_half_extracted(server, tmp_path, monkeypatch, capsys):
+    root = tmp_path / "data"
+    written = []
+
+    def fill_disk(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path) -> None:
+        if len(written) == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(target))
+        extract(zf, info, target)
+        written.append(target)
+
+    extract = fetch_mod.extract_member
+    monkeypatch.setattr(fetch_mod, "extract_member", fill_disk)
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
+    assert code == 2 and err == [f"error: disk full: no space left in {root}; free some space (or choose another "
+                                 f"folder with --root / $NSPLAT_DATA) and run the command again"]
+    assert len(written) == 3 and _files(root) == []
+
+    monkeypatch.setattr(fetch_mod, "extract_member", extract)
+    calls = []
+
+    def fill_disk_later(src: Path, dst: Path, width: int) -> None:
+        calls.append(dst)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        downscale(src, dst, width)
+
+    downscale = prepare_mod._downscale_file
+    monkeypatch.setattr(prepare_mod, "_downscale_file", fill_disk_later)
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url, "--resolution", "4")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: disk full")
+    assert sorted(p.name for p in (root / "nerf_synthetic").iterdir()) == ["lego"]  # fetched, not prepared
+
+
+def test_dss_fetch_prints_the_destination_and_loads(server, tmp_path, capsys):
+    root = tmp_path / "data"
+    code, out, err = _run(capsys, "fetch", "dss", "--root", str(root), "--mirror", server.url, "--quiet")
+    dest = root / "dss_pointclouds"
+    assert code == 0 and err == [] and f"dss: fetched into {dest}" in out and "no checksum" not in out
+    assert sorted(p.name for p in dest.iterdir()) == sorted([*DSS_FILES, "SOURCE.json"])
+    assert load_dss_shape("teapot", root).points.shape == (21, 3)
+    code, out, _ = _run(capsys, "fetch", "dss", "--root", str(root), "--mirror", server.url)
+    assert code == 0 and f"dss: already in {dest}" in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["fetch", "dss", "--resolution", "400"], "usage error: --resolution applies to lego only"),
+    (["fetch", "lego", "--sha256", "abc"], "usage error: --sha256: expected 64 hexadecimal digits"),
+    (["fetch", "chair"], "usage error: nsplat data fetch: argument DATASET: invalid choice: 'chair'"),
+    (["prepare", "lego"], "usage error: nsplat data prepare: the following arguments are required: --resolution"),
+    (["prepare", "lego", "--resolution", "4"], "error: no scene at"),
+    (["fetch", "lego", "--archive", "missing.zip"], "error: --archive missing.zip: no such file"),
+])
+def test_usage_and_missing_input_are_one_line(argv, message, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["nsplat"])
+    code, _, err = _run(capsys, *argv, "--root", str(tmp_path))
+    assert code == 2 and len(err) == 1 and err[0].startswith(message)
+    assert _files(tmp_path) == []
+
+
+def test_a_missing_file_names_the_manual_source(server, tmp_path, capsys):
+    del server.files["nerf_synthetic.zip"]
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(tmp_path / "d"), "--mirror", server.url)
+    assert code == 2 and len(err) == 1 and "HTTP 404" in err[0] and "pass --archive FILE" in err[0]
+    assert not (tmp_path / "d").exists()
+
+
+def test_archive_downloaded_by_hand(server, tmp_path, capsys):
+    archive = tmp_path / "nerf_synthetic.zip"
+    archive.write_bytes(server.files["nerf_synthetic.zip"])
+    sha = _sha(archive.read_bytes())
+    code, out, _ = _run(capsys, "fetch", "lego", "--root", str(tmp_path / "d"), "--archive", str(archive),
+                        "--sha256", sha.upper())
+    assert code == 0 and "no checksum" not in out and server.requests == []
+    assert (tmp_path / "d" / "nerf_synthetic" / "lego" / "transforms_val.json").is_file() and archive.is_file()
+
+
+def test_the_published_checksums_are_enforced_by_python_m(server, tmp_path):
+    """``python -m nsplat.data`` with the real manifest: the fixture PLYs are not the published files."""
+    env = {**os.environ, "NSPLAT_DATA": str(tmp_path / "d"), "NSPLAT_DATA_MIRROR": server.url}
+    proc = subprocess.run([sys.executable, "-m", "nsplat.data", "fetch", "dss"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [proc.stderr.strip()] and "checksum mismatch for bunny-8000.ply" in proc.stderr
+    assert "expected sha256 bec459fd076e3ee8871d1d23346222081d9689a8a7a71133e4f4855b5c7283a0" in proc.stderr
+    assert not (tmp_path / "d").exists()
+
+
+def test_data_root_defaults_to_the_user_data_folder(tmp_path, monkeypatch):
+    monkeypatch.delenv("NSPLAT_DATA", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
+    assert data_root() == tmp_path / "nsplat"
+    monkeypatch.delenv("XDG_DATA_HOME")
+    assert data_root() == Path.home() / ".local" / "share" / "nsplat"
+    assert resolve("$NSPLAT_DATA/dss_pointclouds") == data_root() / "dss_pointclouds"
+    monkeypatch.setenv("NSPLAT_DATA", str(tmp_path / "d"))
+    assert data_root() == tmp_path / "d" and resolve("configs") == REPO / "configs"
