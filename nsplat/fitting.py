@@ -36,7 +36,7 @@ from nsplat.view_model import cameras_of, surfel_view
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                         cfg: RenderConfig, *, seed: int = 0, chunk: int = 12,
                         measure: Literal["radiance", "weight"] = "radiance",
-                        shading: Literal["lambert", "none"] = "lambert", part: tuple[int, int] = (0, 1)
+                        shading: Literal["lambert", "none", "sh"] = "lambert", part: tuple[int, int] = (0, 1)
                         ) -> torch.Tensor:
     """Per-point visual contribution summed over views: ``[N]`` (no gradient).
 
@@ -64,8 +64,8 @@ def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Te
             colour = torch.ones(N, dtype=dtype, device=device)
         elif per_camera:
             colour = lambert(feats, geo[1], vm)[0].norm(dim=-1)
-        else:
-            colour = feats.norm(dim=-1)
+        else:  # unshaded; view-dependent colour ("sh"): its mean colour, the first three channels
+            colour = (feats[:, :3] if shading == "sh" else feats).norm(dim=-1)
         probe = torch.ones(N, 1, dtype=dtype, device=device, requires_grad=True)
         out = render(*geo, probe * colour[:, None], vm, K, width, height, cfg, seed=seed + s, estimator="ht")
         (grad,) = torch.autograd.grad(out.image.sum(), probe)
@@ -116,7 +116,8 @@ class FitConfig:
             ``features``); which attributes are learnable is the scene's ``learn`` list.
         lr_decays: number of times the rate is multiplied by ``lr_gamma``, at regular epoch intervals.
         betas: Adam decay rates.
-        shading: ``lambert`` (features are albedo, shaded per camera) or ``none`` (features rendered as is).
+        shading: ``lambert`` (features are albedo, shaded per camera), ``none`` (features rendered as is) or
+            ``sh`` (features are view-dependent RGB, spherical harmonics: :func:`nsplat.sh.view_colour`).
         reposition: move non-contributing points after every ``reposition_every``-th epoch (paper: every
             epoch; each check renders all views once more, so CPU runs may space it out).
             contribution: what "contributes" means (:func:`point_contributions`): ``radiance`` (weight ×
@@ -135,7 +136,7 @@ class FitConfig:
     lr_decays: int = 5
     lr_gamma: float = 0.5
     betas: tuple[float, float] = (0.9, 0.999)
-    shading: Literal["lambert", "none"] = "lambert"
+    shading: Literal["lambert", "none", "sh"] = "lambert"
     reposition: bool = True
     reposition_every: int = 1
     contribution: Literal["radiance", "weight"] = "radiance"

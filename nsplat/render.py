@@ -18,6 +18,7 @@ from nsplat.config import FieldError, require, require_fields
 from nsplat.ops import SplatOutput, SplatSettings, splat, splat_dense
 from nsplat.render_truncated import splat_truncated
 from nsplat.scene import SurfelScene
+from nsplat.sh import view_colour
 from nsplat.shading import lambert
 
 RENDERERS = ("splat", "dense", "truncated")
@@ -126,7 +127,7 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                 cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none"] = "lambert",
+                 cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
                  background: torch.Tensor | None = None,
                  with_alpha: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
@@ -135,14 +136,19 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
     paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
     a time (the op takes one feature tensor for all its cameras). Camera ``b`` uses op seed ``seed + b``.
+    With ``shading="sh"`` the features are view-dependent RGB (spherical harmonics,
+    :func:`nsplat.sh.view_colour`), also evaluated and rendered per camera.
     """
     if shading == "none":
         outs = [render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
                        width, height, cfg, seed=seed, background=background)]
     else:
-        normals = scene.normals
-        shaded = lambert(scene.features, normals, viewmats)
-        outs = [render(scene.means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
+        normals, means = scene.normals, scene.means
+        if shading == "sh":
+            shaded = [view_colour(scene.features, means, viewmats[b]) for b in range(viewmats.shape[0])]
+        else:
+            shaded = lambert(scene.features, normals, viewmats)
+        outs = [render(means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
                        Ks[b:b + 1], width, height, cfg, seed=seed + b, background=background)
                 for b in range(viewmats.shape[0])]
     image = torch.cat([o.image for o in outs], 0)

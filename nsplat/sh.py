@@ -96,3 +96,61 @@ class SHLighting(torch.nn.Module):
     def forward(self, albedo: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
         """Shaded colours ``[N, C]`` of points with albedo ``[N, C]`` and normals ``[N, 3]``."""
         return sh_shade(albedo, normals, self.coeffs, clamp=self.clamp)
+
+
+# ------------------------------------------------------------------------------ view-dependent colour
+#: Real SH normalisation constants of band 3 (orders m = -3..3), for view directions.
+_C3 = (0.25 * math.sqrt(35.0 / (2.0 * math.pi)), 0.5 * math.sqrt(105.0 / math.pi),
+       0.25 * math.sqrt(21.0 / (2.0 * math.pi)), 0.25 * math.sqrt(7.0 / math.pi))
+#: Largest SH degree of the view-dependent colour.
+MAX_VIEW_DEGREE = 3
+
+
+def view_channels(degree: int) -> int:
+    """Feature channels of an RGB colour with view-dependent SH up to ``degree``: ``3·(degree+1)²``."""
+    if not 0 <= degree <= MAX_VIEW_DEGREE:
+        raise ValueError(f"degree: expected 0..{MAX_VIEW_DEGREE}, got {degree}")
+    return 3 * (degree + 1) ** 2
+
+
+def sh_view_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real orthonormal SH basis of unit directions ``dirs [..., 3]`` up to ``degree`` (≤ 3) without the
+    constant band: ``[..., (degree+1)² − 1]``, orders ``(1,-1), (1,0), (1,1), (2,-2) … (3,3)``."""
+    x, y, z = dirs.unbind(-1)
+    out: list[torch.Tensor] = []
+    if degree >= 1:
+        out += [_C1 * y, _C1 * z, _C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [_C2 * x * y, _C2 * y * z, _C20 * (3.0 * zz - 1.0), _C2 * x * z, _C22 * (xx - yy)]
+    if degree >= 3:
+        out += [_C3[0] * y * (3.0 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (5.0 * zz - 1.0),
+                _C3[3] * z * (5.0 * zz - 3.0), _C3[2] * x * (5.0 * zz - 1.0), 0.5 * _C3[1] * z * (xx - yy),
+                _C3[0] * x * (xx - 3.0 * yy)]
+    return torch.stack(out, dim=-1) if out else dirs.new_zeros(dirs.shape[:-1] + (0,))
+
+
+def view_colour(features: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """RGB of points seen from one camera: ``max(0, f_0 + Σ_{l≥1} f_lm · Y_lm(d))``.
+
+    Args:
+        features: ``[N, 3·(L+1)²]``: channels ``3j..3j+2`` are the RGB coefficient of basis function ``j``;
+            ``j = 0`` is the view-independent colour itself (the constant ``Y_00`` folded in), so
+            ``features[:, :3]`` is the point's mean colour and a degree-0 scene is plain RGB.
+        means: ``[N,3]`` world positions. viewmat: ``[4,4]`` world→camera (the camera centre is
+            ``−Rᵀt``); ``d`` is the unit direction from the camera centre to the point.
+
+    Returns:
+        ``[N,3]`` colours, clamped at 0 (not above: the op composites any value).
+    """
+    K = features.shape[-1] // 3
+    degree = math.isqrt(K) - 1
+    if features.shape[-1] != view_channels(degree):
+        raise ValueError(f"features: expected 3·(L+1)² channels (3, 12, 27 or 48), got {features.shape[-1]}")
+    if degree == 0:
+        return features.clamp_min(0.0)
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    d = torch.nn.functional.normalize(means - (-(R.T @ t)), dim=-1)
+    basis = sh_view_basis(d, degree)                                     # [N, K-1]
+    rest = features[:, 3:].reshape(-1, K - 1, 3)
+    return (features[:, :3] + (basis[..., None] * rest).sum(1)).clamp_min(0.0)

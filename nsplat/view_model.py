@@ -19,6 +19,7 @@ import torch
 
 from nsplat.render import RenderConfig
 from nsplat.scene import SurfelScene
+from nsplat.sh import view_colour
 from nsplat.shading import lambert
 
 
@@ -95,8 +96,19 @@ def cameras_of(images: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -
 def surfel_view(scene: SurfelScene, cameras: TrainingCameras | None, *, shading: str = "none",
                 background: torch.Tensor | None = None, render_cfg: RenderConfig | None = None, task: str = "",
                 seed: int = 0) -> ViewModel:
-    """View of RGB surfels; ``shading="lambert"`` shades them with the paper's camera-relative lights."""
-    bg = background if background is not None else scene.means.new_zeros(scene.features.shape[1])
+    """View of RGB surfels; ``shading="lambert"`` shades them with the paper's camera-relative lights,
+    ``shading="sh"`` evaluates their view-dependent colour (:func:`nsplat.sh.view_colour`) per camera."""
+    colours = None
+    if shading == "lambert":
+        colours = lambert
+    elif shading == "sh":
+        means = scene.means.detach()
+
+        def colours(features: torch.Tensor, normals: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+            return view_colour(features, means, viewmat[0])[None]
+
+    bg = scene.means.new_zeros(3 if shading == "sh" else scene.features.shape[1]) if background is None \
+        else background
     return ViewModel(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, bg,
-                     colours=lambert if shading == "lambert" else None,
+                     colours=colours,
                      render_cfg=render_cfg or RenderConfig(), cameras=cameras, task=task, seed=seed)

@@ -81,10 +81,11 @@ def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
 
 # ---------------------------------------------------------------------------------------------- scenes
 def geometry_scene_config(cfg: Config) -> SceneConfig:
-    """Stage-1 scene: RGB colour (sigmoid) and the stage's learnable attributes."""
+    """Stage-1 scene: RGB colour (sigmoid), or view-dependent RGB (spherical harmonics, stored as is),
+    and the stage's learnable attributes."""
     g = cfg.geometry
-    return SceneConfig(channels=3, learn=list(g.learn), opacity=g.opacity, scale=None,
-                       feature_activation="sigmoid")
+    return SceneConfig(channels=g.channels(), learn=list(g.learn), opacity=g.opacity, scale=None,
+                       feature_activation="identity" if g.optim.shading == "sh" else "sigmoid")
 
 
 def neural_scene_config(cfg: Config) -> SceneConfig:
@@ -103,18 +104,43 @@ def _initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold, dilate=g.dilate,
                      min_seen=g.min_seen, max_points=g.max_points, seed=seed)
     log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
+    colours = hp.colours.clamp(0.02, 0.98).to(device)
+    features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)  # SH: view-independent
     return SurfelScene.from_points(scfg, hp.means.to(device), hp.normals.to(device),
                                    opacities=g.init_opacity if g.opacity is None else None,
-                                   features=hp.colours.clamp(0.02, 0.98).to(device), scale_factor=g.scale_factor)
+                                   features=features, scale_factor=g.scale_factor)
 
 
-def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews) -> SurfelScene:
-    """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``."""
+def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedViews | None = None) -> SurfelScene:
+    """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``.
+
+    With ``geometry.log.validate > 0`` and ``val``, the stage-1 surfels are rendered on ``val``
+    (``eval.val_views`` of them, evaluation settings) at that cadence and ``geometry_history.json``
+    records ``{step, elapsed_s, val_psnr}``; ``elapsed_s`` is the stage's wall time so far, from before
+    the initial points, without the validation renders (the time-to-quality curve of stage 1)."""
+    t0, validating = time.perf_counter(), 0.0
     scene = _initial_geometry(cfg, train, ctx.seed)
-    if cfg.geometry.optim.epochs > 0:
-        fit(scene, train, cfg.geometry.optim, cfg.render, ctx.run_dir / "geometry", seed=ctx.seed, resume=ctx.resume,
-            log=dataclasses.replace(cfg.geometry.log, progress=cfg.log.progress), background=train.background,
-            desc="geometry")
+    g = cfg.geometry
+    history: list[dict[str, float]] = []
+    val_sub = val.spread(cfg.eval.val_views) if val is not None else None
+
+    def validate(done: int, writer: Any) -> dict[str, float]:
+        nonlocal validating
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            rgb = gateway.render_views(scene, val_sub.viewmats, val_sub.Ks, val_sub.width, val_sub.height,
+                                       cfg.eval_render(), seed=eval_seed(cfg), shading=g.optim.shading,
+                                       background=val_sub.background).clamp(0, 1)
+        value = float(psnr(rgb, val_sub.images).mean())
+        history.append({"step": done, "elapsed_s": t1 - t0 - validating, "val_psnr": value})
+        write_json(ctx.run_dir / "geometry_history.json", {"history": history})
+        validating += time.perf_counter() - t1
+        return {"psnr/val": value}
+
+    if g.optim.epochs > 0:
+        fit(scene, train, g.optim, cfg.render, ctx.run_dir / "geometry", seed=ctx.seed, resume=ctx.resume,
+            log=dataclasses.replace(g.log, progress=cfg.log.progress), background=train.background,
+            desc="geometry", validate=validate if val_sub is not None and g.log.validate > 0 else None)
     if distributed.is_main():
         scene.save_ply(ctx.run_dir / "geometry.ply")
     return scene
@@ -326,8 +352,10 @@ def run(cfg: Config, ctx: RunContext) -> dict:
     payload = latest_payload(ctx.run_dir, ctx.resume, "cpu")
     timing = {}
     if payload is None:
-        geo = fit_geometry(cfg, ctx, train)
+        geo = fit_geometry(cfg, ctx, train, val)
         timing["geometry_s"] = time.perf_counter() - t0
+        if cfg.neural.steps == 0:
+            return _point_only_result(cfg, ctx, val, timing)
         scene = neural_scene_from(cfg, geo, seed=ctx.seed)
         log.info("stage 2: %d points, %d features", scene.num_points, cfg.neural.features)
     else:
@@ -348,6 +376,19 @@ def run(cfg: Config, ctx: RunContext) -> dict:
         evaluate_geometry(cfg, ctx, splits, eval_seed(cfg))
     write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
     return metrics
+
+
+def _point_only_result(cfg: Config, ctx: RunContext, val: PosedViews | None, timing: dict) -> dict:
+    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics are the run's."""
+    if not distributed.is_main():
+        return {}
+    from nsplat.tasks.neural_eval import evaluate_geometry
+
+    splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
+              cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
+    out = evaluate_geometry(cfg, ctx, splits, eval_seed(cfg))
+    write_json(ctx.run_dir / "timing.json", {**timing, "train_total_s": timing["geometry_s"], "neural_steps_s": 0.0})
+    return {"split": cfg.eval.split, "points": out["points"], **out[cfg.eval.split]}
 
 
 def _check_parallel(cfg: Config, views: int) -> None:

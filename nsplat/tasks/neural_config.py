@@ -9,6 +9,7 @@ from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig
 from nsplat.render import RenderConfig
 from nsplat.scene import ATTRIBUTES
+from nsplat.sh import MAX_VIEW_DEGREE, view_channels
 
 
 @dataclasses.dataclass
@@ -63,14 +64,15 @@ class DataConfig:
 @dataclasses.dataclass
 class GeometryFitConfig(FitConfig):
     """:class:`nsplat.fitting.FitConfig` with this stage's defaults (short CPU schedule, RGB
-    features rendered without shading: photographs carry their own)."""
+    features rendered without shading: photographs carry their own). ``shading: sh`` makes the colour
+    view-dependent (spherical harmonics up to ``geometry.sh_degree``)."""
 
     epochs: int = 8
     batch: int = 4
     learn: dict[str, float] = dataclasses.field(default_factory=lambda: {
         "means": 0.002, "normals": 0.01, "scales": 0.005, "opacities": 0.05, "features": 0.05})
     lr_decays: int = 2
-    shading: Literal["none"] = "none"
+    shading: Literal["none", "sh"] = "none"
     reposition_every: int = 4
 
 
@@ -93,6 +95,8 @@ class GeometryConfig:
         optim: :class:`GeometryFitConfig` (``epochs: 0`` keeps the initial points).
         log: the stage's cadences in fitter steps (its progress bar follows ``log.progress``).
         prune_opacity: points whose opacity ends below this are dropped before stage 2.
+        sh_degree: degree (1..3) of the view-dependent colour when ``optim.shading`` is ``sh``
+            (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
     """
 
     init: Literal["hull", "ply"] = "hull"
@@ -112,8 +116,18 @@ class GeometryConfig:
     log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=0, validate=0,
                                                                         checkpoint=10))
     prune_opacity: float = 0.02
+    sh_degree: int = 0
+
+    def channels(self) -> int:
+        """Feature channels of the stage-1 scene: RGB, or RGB spherical harmonics up to ``sh_degree``."""
+        return view_channels(self.sh_degree) if self.optim.shading == "sh" else 3
 
     def __post_init__(self) -> None:
+        if not 0 <= self.sh_degree <= MAX_VIEW_DEGREE:
+            raise ConfigError(f"geometry.sh_degree: expected 0..{MAX_VIEW_DEGREE}, got {self.sh_degree}")
+        if (self.sh_degree > 0) != (self.optim.shading == "sh"):
+            raise ConfigError(f"geometry.sh_degree: expected >= 1 exactly when geometry.optim.shading is sh, got "
+                              f"{self.sh_degree} with shading {self.optim.shading!r}")
         if self.init == "ply" and not self.ply:
             raise ConfigError("geometry.ply: required when geometry.init is ply")
         if self.grid < 8:
@@ -177,7 +191,8 @@ class NeuralConfig:
     """Stage 2: learned point features + U-Net shader (+ PatchGAN).
 
     Attributes:
-        steps: optimisation steps. batch: training views per step (the global batch: under torchrun
+        steps: optimisation steps; 0: no stage 2 (the stage-1 surfels are the model, evaluated as
+            ``eval_geometry.json`` and returned as the run's metrics: the point-only baseline). batch: training views per step (the global batch: under torchrun
             each of the P processes renders ``batch / P`` of them, docs/distributed.md).
         chunk: views rendered (and back-propagated) at once by one process; a step's share is rendered
             in chunks of this many views with gradients accumulated (``null``: the whole share at once).
@@ -217,7 +232,9 @@ class NeuralConfig:
         return min(round(self.gan.start * self.steps), self.steps - 1)
 
     def __post_init__(self) -> None:
-        for key in ("steps", "batch", "features"):
+        if self.steps < 0:
+            raise ConfigError(f"neural.steps: expected >= 0, got {self.steps}")
+        for key in ("batch", "features"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"neural.{key}: expected >= 1, got {getattr(self, key)}")
         if self.chunk is not None and self.chunk < 1:

@@ -94,7 +94,8 @@ def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews
     out: dict = {"points": scene.num_points}
     for split, views in splits.items():
         rgbs = [render_views(scene, views.viewmats[s:s + 4], views.Ks[s:s + 4], views.width, views.height,
-                             cfg.eval_render(), seed=seed + s, shading="none", background=views.background)
+                             cfg.eval_render(), seed=seed + s, shading=cfg.geometry.optim.shading,
+                             background=views.background)
                 for s in range(0, len(views), 4)]
         rgb = torch.cat(rgbs).clamp(0, 1)
         out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}

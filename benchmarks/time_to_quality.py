@@ -1,0 +1,183 @@
+"""Time to quality (issue 28): validation PSNR against training wall time for each renderer, estimator,
+sample count, network size and stage split, with the held-out test PSNR at the end.
+
+Each configuration is one ``train.py`` run of a shipped config with overrides, one after another (never
+two at once: the machine has 2 cores). The curve of a run joins stage 1 (``geometry_history.json``: the
+RGB/SH surfels rendered on val) and stage 2 (``history.json``: the U-Net's renders on val); its x axis is
+the training wall time so far (stage 1 from before the visual hull, plus the stage-2 step times), without
+the validation renders. ``--budget S`` reads every curve at S seconds (the equal-wall-time comparison).
+
+    python benchmarks/time_to_quality.py --scene default --configs shipped m16 truncated --seeds 0 1 2
+    python benchmarks/time_to_quality.py --scene lego --configs point-sh3 --seeds 0
+    python benchmarks/time_to_quality.py --scene default --report          # table + figure of finished runs
+
+Runs go to ``runs/ttq/<scene>/<config>-s<seed>`` (kept: a finished run is not trained again); the table
+goes to stdout and ``benchmarks/results/time_to_quality-<scene>.json``, the figure to
+``docs/images/neural/time_to_quality-<scene>.png``. Each run records wall and CPU seconds and the load
+average before and after it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+IMAGES = REPO / "docs" / "images" / "neural"
+SCENES = {"default": "configs/default.yaml", "lego": "configs/lego.yaml"}
+
+#: Stage-1 validation cadence (fitter steps) and stage-2 cadence per scene: dense enough for a curve.
+CADENCE = {"default": ["geometry.log.validate=100", "log.validate=100"],
+           "lego": ["geometry.log.validate=120", "log.validate=250"]}
+POINT_ONLY = ["neural.steps=0"]
+SH = ["geometry.optim.shading=sh", "geometry.sh_degree=3"]
+
+#: Configurations: overrides of the scene's shipped config. "point-*" rows are stage 1 alone (no U-Net).
+CONFIGS: dict[str, list[str]] = {
+    "shipped": [],
+    "sampled": ["render.estimator=sampled"],
+    "ht-pips": ["render.estimator=ht-pips"],
+    "truncated": ["render.renderer=truncated"],
+    "m8": ["render.samples=8"],
+    "m16": ["render.samples=16"],
+    "eps0.05": ["render.eps=0.05"],
+    "unet-w16": ["neural.unet.width=16"],
+    "unet-d3": ["neural.unet.depth=3"],
+    "steps-half": ["neural.steps=500"],
+    "no-gan": ["neural.gan.enabled=false"],
+    "point": POINT_ONLY,
+    "point-sampled": POINT_ONLY + ["render.estimator=sampled"],
+    "point-truncated": POINT_ONLY + ["render.renderer=truncated"],
+    "point-sh3": POINT_ONLY + SH,
+}
+
+
+def _load() -> list[float]:
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def run_one(scene: str, name: str, seed: int, extra: list[str]) -> Path:
+    """Train one configuration (skipped when its run folder already holds a finished run)."""
+    run = REPO / "runs" / "ttq" / scene / f"{name}-s{seed}"
+    if (run / "timing.json").is_file():
+        return run
+    cmd = [sys.executable, str(REPO / "train.py"), "--config", str(REPO / SCENES[scene]), "--run", str(run),
+           "--overwrite", f"seed={seed}", "log.progress=false", *CADENCE[scene], *CONFIGS[name], *extra]
+    before, t0 = _load(), time.perf_counter()
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"{name} seed {seed} failed:\n{proc.stderr[-3000:]}")
+    (run / "ttq.json").write_text(json.dumps({
+        "command": cmd[1:], "wall_s": time.perf_counter() - t0,
+        "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime),
+        "load_before": before, "load_after": _load()}, indent=1))
+    return run
+
+
+def curve(run: Path) -> list[tuple[float, float]]:
+    """``(training seconds, val PSNR)`` of stage 1 then stage 2."""
+    geo = (_read(run / "geometry_history.json") or {}).get("history", [])
+    pts = [(h["elapsed_s"], h["val_psnr"]) for h in geo]
+    timing = _read(run / "timing.json") or {}
+    offset = timing.get("geometry_s", 0.0)
+    pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read(run / "history.json") or {}).get("history", [])]
+    return pts
+
+
+def at_budget(pts: list[tuple[float, float]], budget: float) -> float:
+    """Val PSNR of the last validation at or before ``budget`` seconds (nan when none)."""
+    done = [p for t, p in pts if t <= budget]
+    return done[-1] if done else float("nan")
+
+
+def summary(scene: str, name: str, seed: int) -> dict | None:
+    run = REPO / "runs" / "ttq" / scene / f"{name}-s{seed}"
+    timing = _read(run / "timing.json")
+    if timing is None:
+        return None
+    split = "test"
+    metrics = _read(run / f"eval_{split}" / "metrics.json")
+    geometry = _read(run / "eval_geometry.json") or {}
+    test = metrics["psnr"]["mean"] if metrics else geometry[split]["psnr"]["mean"]
+    points = metrics["points"] if metrics else geometry.get("points")
+    return {"config": name, "seed": seed, "overrides": CONFIGS[name], "train_s": timing["train_total_s"],
+            "stage1_s": timing["geometry_s"], "stage1_test_psnr": geometry.get(split, {}).get("psnr", {}).get("mean"),
+            "test_psnr": test, "points": points, "curve": curve(run), **(_read(run / "ttq.json") or {})}
+
+
+def table(rows: list[dict], budgets: list[float]) -> str:
+    head = "| config | seed | train s (wall / CPU of the command) | stage 1 s | points | " + \
+        " | ".join(f"val @ {b:.0f} s" for b in budgets) + " | stage-1 test | test PSNR |"
+    out = [head, "|" + "---|" * (8 + len(budgets) - 2)]
+    for r in rows:
+        cells = " | ".join(f"{at_budget(r['curve'], b):.2f}" for b in budgets)
+        s1 = r["stage1_test_psnr"]
+        out.append(f"| {r['config']} | {r['seed']} | {r['train_s']:.0f} ({r.get('wall_s', float('nan')):.0f} / "
+                   f"{r.get('cpu_s', float('nan')):.0f}) | {r['stage1_s']:.0f} | {r['points']} | {cells} | "
+                   f"{'–' if s1 is None else f'{s1:.2f}'} | {r['test_psnr']:.2f} |")
+    return "\n".join(out)
+
+
+def figure(rows: list[dict], scene: str, path: Path) -> None:
+    fig, ax = plt.subplots(figsize=(9, 5.5))
+    colours: dict[str, tuple] = {}
+    for r in rows:
+        if not r["curve"]:
+            continue
+        t, p = zip(*r["curve"])
+        colour = colours.setdefault(r["config"], plt.cm.tab20(len(colours) % 20))
+        ax.plot(np.array(t) / 60, p, "-o", ms=2.5, color=colour,
+                label=f"{r['config']} (test {r['test_psnr']:.2f})" if r["seed"] == min(
+                    x["seed"] for x in rows if x["config"] == r["config"]) else None)
+    ax.set_xlabel("training wall time (min, 2 threads)")
+    ax.set_ylabel("val PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(f"time to quality, {scene} scene")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", choices=sorted(SCENES), default="default")
+    p.add_argument("--configs", nargs="*", default=[], choices=sorted(CONFIGS), metavar="NAME")
+    p.add_argument("--seeds", nargs="*", type=int, default=[0])
+    p.add_argument("--budgets", nargs="*", type=float, default=None, help="seconds (default: scene's)")
+    p.add_argument("--report", action="store_true", help="only tabulate the finished runs")
+    args = p.parse_args()
+    if not args.report:
+        for name in args.configs:
+            for seed in args.seeds:
+                run_one(args.scene, name, seed, [])
+                print(f"done: {name} seed {seed}", flush=True)
+    rows = [r for name in CONFIGS for seed in range(10) if (r := summary(args.scene, name, seed)) is not None]
+    budgets = args.budgets or ([60, 90, 120, 180] if args.scene == "default" else [300, 600, 900, 1500])
+    print(table(rows, budgets))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"time_to_quality-{args.scene}.json").write_text(json.dumps(
+        {"scene": args.scene, "budgets_s": budgets, "runs": rows}, indent=1))
+    figure(rows, args.scene, IMAGES / f"time_to_quality-{args.scene}.png")
+
+
+if __name__ == "__main__":
+    main()

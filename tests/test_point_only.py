@@ -1,0 +1,93 @@
+"""The point-only baseline (issue 28): view-dependent colour by spherical harmonics (``nsplat.sh``
+``view_colour``), stage 1 alone as a model (``neural.steps: 0``), and stage 1's validation curve."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from nsplat.cli import main
+from nsplat.config import ConfigError, load_config, read_yaml
+from nsplat.sh import sh_view_basis, view_channels, view_colour
+from nsplat.tasks.neural import Config
+from tests.test_neural import _tiny
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _sphere(n: int) -> torch.Tensor:
+    """``n`` nearly uniform unit directions (Fibonacci lattice), float64."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5 ** 0.5) * i
+    r = (1 - z * z).sqrt()
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def test_view_basis_is_orthonormal_up_to_degree_3():
+    d = _sphere(100_000)
+    B = sh_view_basis(d, 3)
+    assert B.shape == (100_000, 15)
+    gram = 4 * math.pi * (B.T @ B) / d.shape[0]  # ∫ Y_i Y_j dω by the lattice rule
+    assert float((gram - torch.eye(15, dtype=torch.float64)).abs().max()) < 1e-5
+    # each band is also orthogonal to the constant: ∫ Y_lm dω = 0
+    assert float((B.mean(0)).abs().max()) < 1e-5
+    # lower degrees are prefixes of the higher ones
+    assert torch.equal(sh_view_basis(d, 2), B[:, :8]) and torch.equal(sh_view_basis(d, 1), B[:, :3])
+
+
+def test_view_colour_is_the_mean_colour_plus_a_view_term():
+    g = torch.Generator().manual_seed(0)
+    N = 50
+    means = torch.randn(N, 3, generator=g, dtype=torch.float64)
+    feats = torch.zeros(N, view_channels(3), dtype=torch.float64)
+    feats[:, :3] = torch.rand(N, 3, generator=g, dtype=torch.float64)
+    V = torch.eye(4, dtype=torch.float64)
+    V[:3, 3] = torch.tensor([0.0, 0.0, 4.0])
+    # no higher coefficients: the colour is the first three channels, whatever the camera
+    assert torch.equal(view_colour(feats, means, V), feats[:, :3])
+    # one band-1 coefficient: colour changes with the direction from the camera centre (0, 0, -4)
+    feats[:, 3 + 1 * 3: 3 + 2 * 3] = 0.1  # coefficient of Y_10 (z) for R, G and B
+    d = torch.nn.functional.normalize(means - torch.tensor([0.0, 0.0, -4.0], dtype=torch.float64), dim=-1)
+    want = (feats[:, :3] + 0.1 * math.sqrt(3 / (4 * math.pi)) * d[:, 2:3]).clamp_min(0)
+    assert torch.allclose(view_colour(feats, means, V), want, atol=1e-12)
+    with pytest.raises(ValueError, match="features"):
+        view_colour(feats[:, :10], means, V)
+
+
+def test_sh_degree_must_match_the_shading(tmp_path):
+    with pytest.raises(ConfigError, match="geometry.sh_degree"):
+        load_config(Config, _tiny(tmp_path, steps=0) | {"geometry": {"sh_degree": 2}})
+    with pytest.raises(ConfigError, match="geometry.sh_degree"):
+        load_config(Config, _tiny(tmp_path) | {"geometry": {"optim": {"shading": "sh"}, "sh_degree": 4}})
+    cfg = load_config(Config, _tiny(tmp_path) | {"geometry": {"optim": {"shading": "sh"}, "sh_degree": 3}})
+    assert cfg.geometry.channels() == 48
+
+
+def test_point_only_sh_run_trains_evaluates_and_records_its_curve(tmp_path):
+    raw = _tiny(tmp_path / "cache", steps=0)
+    raw["geometry"] = {"grid": 24, "sh_degree": 2, "log": {"validate": 2},
+                       "optim": {"epochs": 2, "batch": 3, "reposition": False, "shading": "sh"}}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(raw))
+    run = tmp_path / "run"
+    assert main(["--config", str(tmp_path / "c.yaml"), "--run", str(run)]) == 0
+    geo = json.loads((run / "eval_geometry.json").read_text())
+    assert set(geo) >= {"points", "val", "test"} and math.isfinite(geo["test"]["psnr"]["mean"])
+    history = json.loads((run / "geometry_history.json").read_text())["history"]
+    assert [h["step"] for h in history] == [2, 4]  # 2 epochs of 2 steps (6 views, batch 3)
+    assert history[0]["elapsed_s"] < history[1]["elapsed_s"]
+    timing = json.loads((run / "timing.json").read_text())
+    assert timing["neural_steps_s"] == 0.0 and timing["train_total_s"] == timing["geometry_s"]
+    assert not (run / "checkpoints").exists() and not (run / "eval_test").exists()  # no stage 2
+    # the stage-1 PLY holds the SH coefficients (3·(2+1)² = 27 channels), the first three the mean colour
+    header = (run / "geometry.ply").read_bytes()[:4000]
+    assert b"property float f_26" in header and b"property float f_27" not in header
+
+
+def test_shipped_splat_only_config_loads():
+    cfg = load_config(Config, read_yaml(REPO / "configs" / "splat_only.yaml"))
+    assert cfg.neural.steps == 0 and cfg.geometry.optim.shading == "sh" and cfg.geometry.sh_degree >= 1
