@@ -5,15 +5,24 @@ mid-run stops the other with the distributed error within the timeout, leaves a 
 with 2 processes ends where the 1-process run ended. In process: a step rendered in camera chunks has the
 gradients of the step rendered at once.
 
-Ranks are started either by ``torchrun`` itself or, where the test must kill one rank, as plain processes
-with the environment torchrun gives them (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``).
+Ranks are started either by ``torchrun --standalone`` itself or, where the test must kill one rank, as plain
+processes with the environment torchrun gives them (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``,
+``TORCHELASTIC_USE_AGENT_STORE``) while the test hosts the rendezvous store, as torchrun's agent does. Either
+way the store's port is bound once, on port 0, by the process that keeps it: no port is picked, released and
+then re-bound, so a busy machine cannot take it in between.
+
+1- and 2-process runs reduce their gradients in different orders, so they agree only to rounding, and the
+sampled op's choice of samples is discontinuous: a rounding difference can, rarely, change one sample at one
+pixel and move the few parameters it reaches by a fraction of a learning rate (:func:`_assert_same_model`).
+Runs with the same number of processes are compared bit for bit.
 """
 from __future__ import annotations
 
+import dataclasses
+import datetime
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +31,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from torch.distributed import TCPStore
 
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import load_config
@@ -31,6 +41,11 @@ from nsplat.tasks.neural import Config, build, fit_geometry, load_views, neural_
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 20  # --dist-timeout of the killed run
+#: 1 vs 2 processes: the fraction of all elements that may be off by more than rounding (rtol = atol = 1e-5),
+#: and by how much at most. Measured: 13 of 32005 stage-2 elements, by at most 2.9e-4 (one sample changed in
+#: the first steps); with rank 1 drawing rank 0's op seeds (a deliberate bug), 17741 of them.
+FLIPPED_FRACTION = 2e-3
+FLIPPED_MAX = 1e-3
 
 
 def _tiny(cache: Path) -> dict:
@@ -52,42 +67,51 @@ def _tiny(cache: Path) -> dict:
     }
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _env(**extra: str) -> dict[str, str]:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO), **extra)
-    for key in ("RANK", "LOCAL_RANK", "WORLD_SIZE", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
+    for key in ("RANK", "LOCAL_RANK", "WORLD_SIZE", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT",
+                "TORCHELASTIC_USE_AGENT_STORE"):
         if key not in extra:
             env.pop(key, None)
     return env
 
 
 def _torchrun(*args: str, nproc: int = 2) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc_per_node={nproc}",
-           f"--master_port={_free_port()}", str(REPO / "train.py"), *args]
+    """``torchrun --standalone``: its agent binds the rendezvous store on a free port itself."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+           str(REPO / "train.py"), *args]
     return subprocess.run(cmd, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=240)
 
 
-def _ranks(*args: str, world: int = 2) -> list[subprocess.Popen]:
-    """``world`` processes of ``train.py args`` with torchrun's environment (no agent: each can be killed)."""
-    port = str(_free_port())
-    return [subprocess.Popen([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, text=True,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             env=_env(RANK=str(r), LOCAL_RANK=str(r), WORLD_SIZE=str(world),
-                                      LOCAL_WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1", MASTER_PORT=port))
-            for r in range(world)]
+@dataclasses.dataclass
+class _Ranks:
+    """Rank processes started without torchrun's agent (each can be killed) and the rendezvous store the
+    test hosts for them in its place (kept open until the ranks have finished)."""
+
+    procs: list[subprocess.Popen]
+    store: TCPStore
+
+    def finish(self) -> list[tuple[int, str]]:
+        """``(exit status, stderr)`` of every rank."""
+        out = []
+        for p in self.procs:
+            _, err = p.communicate(timeout=240)
+            out.append((p.returncode, err))
+        return out
 
 
-def _finish(procs: list[subprocess.Popen]) -> list[tuple[int, str]]:
-    out = []
-    for p in procs:
-        _, err = p.communicate(timeout=240)
-        out.append((p.returncode, err))
-    return out
+def _ranks(*args: str, world: int = 2) -> _Ranks:
+    """``world`` processes of ``train.py args`` with torchrun's environment; the test holds the store, bound
+    on port 0, and the ranks join it as torchrun's workers join their agent's."""
+    store = TCPStore("127.0.0.1", 0, world_size=world, is_master=True, wait_for_workers=False,
+                     timeout=datetime.timedelta(seconds=240))
+    procs = [subprocess.Popen([sys.executable, str(REPO / "train.py"), *args], cwd=REPO, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              env=_env(RANK=str(r), LOCAL_RANK=str(r), WORLD_SIZE=str(world),
+                                       LOCAL_WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
+                                       MASTER_PORT=str(store.port), TORCHELASTIC_USE_AGENT_STORE="True"))
+             for r in range(world)]
+    return _Ranks(procs, store)
 
 
 @pytest.fixture(scope="module")
@@ -112,16 +136,29 @@ def _modules(run: Path, sub: str = "") -> dict[str, torch.Tensor]:
     return {f"{m}.{k}": v for m, state in payload["modules"].items() for k, v in state.items()}
 
 
+def _assert_same_model(got: dict[str, torch.Tensor], want: dict[str, torch.Tensor], what: str) -> None:
+    """``got`` is ``want`` to rounding (rtol = atol = 1e-5), except at most ``FLIPPED_FRACTION`` of all
+    elements, none off by more than ``FLIPPED_MAX``: those a changed sample reaches (module docstring)."""
+    assert got.keys() == want.keys(), what
+    off: dict[str, int] = {}
+    for name, w in want.items():
+        g = got[name]
+        assert g.shape == w.shape, f"{what} {name}: {tuple(g.shape)} != {tuple(w.shape)}"
+        torch.testing.assert_close(g, w, rtol=0, atol=FLIPPED_MAX, msg=f"{what} {name}")
+        if n := int((~torch.isclose(g, w, rtol=1e-5, atol=1e-5)).sum()):
+            off[name] = n
+    total = sum(w.numel() for w in want.values())
+    assert sum(off.values()) <= FLIPPED_FRACTION * total, (
+        f"{what}: {sum(off.values())} of {total} elements off by more than 1e-5: {off}")
+
+
 def test_two_ranks_train_the_one_rank_model(config, two_ranks, tmp_path):
     one = tmp_path / "one"
     res = subprocess.run([sys.executable, str(REPO / "train.py"), "--config", str(config), "--run", str(one)],
                          env=_env(), cwd=REPO, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-3000:]
     for sub in ("geometry", ""):  # the fitter (stage 1, with repositioning) and the GAN step (stage 2)
-        a, b = _modules(one, sub), _modules(two_ranks, sub)
-        assert a.keys() == b.keys()
-        for name in a:  # measured: max difference 1.2e-6 after 12 steps
-            torch.testing.assert_close(b[name], a[name], rtol=1e-5, atol=1e-5, msg=f"{sub} {name}")
+        _assert_same_model(_modules(two_ranks, sub), _modules(one, sub), sub or "stage 2")
     # Rank 0 alone wrote the run folder: the same files as the single-process run, metrics included.
     files = {p.relative_to(one) for p in one.rglob("*") if "tb" not in p.parts}
     assert files == {p.relative_to(two_ranks) for p in two_ranks.rglob("*") if "tb" not in p.parts}
@@ -133,24 +170,22 @@ def test_two_ranks_train_the_one_rank_model(config, two_ranks, tmp_path):
     shutil.copytree(one, cut)
     (cut / "checkpoints" / "ckpt-00000012.pt").unlink()
     (cut / "checkpoints" / "latest").write_text("ckpt-00000010.pt")
-    results = _finish(_ranks("--run", str(cut), "--resume"))
+    results = _ranks("--run", str(cut), "--resume").finish()
     assert all(code == 0 for code, _ in results), results[0][1][-3000:] + results[1][1][-3000:]
-    a, b = _modules(one), _modules(cut)
-    for name in a:
-        torch.testing.assert_close(b[name], a[name], rtol=1e-5, atol=1e-5, msg=name)
+    _assert_same_model(_modules(cut), _modules(one), "resumed with 2 processes")
 
 
 def test_killed_rank_stops_the_run_and_resume_matches(config, two_ranks, tmp_path):
     run = tmp_path / "cut"
-    procs = _ranks("--config", str(config), "--run", str(run), "--dist-timeout", str(TIMEOUT_S))
+    job = _ranks("--config", str(config), "--run", str(run), "--dist-timeout", str(TIMEOUT_S))
     latest = run / "checkpoints" / "latest"
     deadline = time.monotonic() + 120
-    while not latest.is_file() and time.monotonic() < deadline and procs[0].poll() is None:
+    while not latest.is_file() and time.monotonic() < deadline and job.procs[0].poll() is None:
         time.sleep(0.02)
     assert latest.is_file(), "no stage-2 checkpoint appeared"
-    procs[1].send_signal(signal.SIGKILL)
+    job.procs[1].send_signal(signal.SIGKILL)
     killed = time.monotonic()
-    (code, err), _ = _finish(procs)
+    (code, err), _ = job.finish()
     assert time.monotonic() - killed < TIMEOUT_S + 5
     assert code == 1, err[-3000:]
     assert "distributed error: rank 0 of 2:" in err and "another rank died" in err, err[-3000:]
@@ -158,7 +193,7 @@ def test_killed_rank_stops_the_run_and_resume_matches(config, two_ranks, tmp_pat
     assert 2 <= step < 12, "the kill came too late to interrupt the run"
     assert not list((run / "checkpoints").glob(".*.tmp-*"))
 
-    results = _finish(_ranks("--run", str(run), "--resume"))
+    results = _ranks("--run", str(run), "--resume").finish()
     assert all(code == 0 for code, _ in results), results[0][1][-3000:] + results[1][1][-3000:]
     a, b = _modules(two_ranks), _modules(run)
     assert a.keys() == b.keys()
