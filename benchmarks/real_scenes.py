@@ -63,7 +63,7 @@ def _fit(neural, cfg, train, scene, epochs: int, views: int | None, tag: str) ->
 
 def make_default(epochs: int) -> None:
     cfg, train, neural = _neural("default.yaml", ISSUE_DEFAULT)
-    scene = neural._initial_geometry(cfg, train, 0)
+    scene = neural.initial_geometry(cfg, train, 0)
     _fit(neural, cfg, train, scene, epochs, None, "default")
     keep = scene.opacities >= cfg.geometry.prune_opacity
     scene = neural.neural_scene_from(cfg, scene, 0)
@@ -73,7 +73,7 @@ def make_default(epochs: int) -> None:
 
 def make_lego(steps: int) -> None:
     cfg, train, neural = _neural("lego.yaml", ISSUE_LEGO)
-    scene = neural._initial_geometry(cfg, train, 0)
+    scene = neural.initial_geometry(cfg, train, 0)
     H, W = train.images.shape[1:3]
     _save("lego_hull", scene, train.viewmats[0], train.Ks[0], W, H)
     if steps > 0:
@@ -84,7 +84,7 @@ def make_lego(steps: int) -> None:
 
 def make_lego20k() -> None:
     cfg, train, neural = _neural("lego.yaml", [])
-    scene = neural._initial_geometry(cfg, train, 0)
+    scene = neural.initial_geometry(cfg, train, 0)
     H, W = train.images.shape[1:3]
     _save("lego20k_hull", scene, train.viewmats[0], train.Ks[0], W, H)
 

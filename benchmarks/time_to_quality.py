@@ -62,6 +62,12 @@ CONFIGS: dict[str, list[str]] = {
     "point-truncated": POINT_ONLY + ["render.renderer=truncated"],
     "point-sh3": POINT_ONLY + SH,
 }
+#: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
+POOR_STARTS = {"random": ["geometry.init=random", "geometry.max_points=2400"], "tenth": ["geometry.init_fraction=0.1"],
+               "shift3": ["geometry.init_shift=3"]}
+RENDERERS = {"ht": [], "sampled": ["render.estimator=sampled"], "truncated": ["render.renderer=truncated"]}
+CONFIGS.update({f"poor-{start}-{r}": POINT_ONLY + s + o for start, s in POOR_STARTS.items()
+                for r, o in RENDERERS.items()})
 
 
 def _load() -> list[float]:

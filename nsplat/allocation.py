@@ -19,7 +19,7 @@ from nsplat import fitting
 from nsplat.config import load_config, read_yaml
 from nsplat.data.views import PosedViews
 from nsplat.scene import SceneConfig, SurfelScene
-from nsplat.tasks import get_task, neural, reconstruct, refine
+from nsplat.tasks import get_task, neural, neural_init, reconstruct, refine
 
 #: Placeholder point count; a tensor dimension equal to it is printed as ``N``.
 N_PLACEHOLDER = 1009
@@ -103,7 +103,7 @@ def build_refine(cfg: Any) -> tuple[Models, list[str]]:
 
 def build_neural(cfg: Any) -> tuple[Models, list[str]]:
     """Stage 1's scene, stage 2's renderer and (when enabled) the discriminator."""
-    stage1 = fitting.build(_placeholder_scene(neural.geometry_scene_config(cfg)), cfg.geometry.optim).modules
+    stage1 = fitting.build(_placeholder_scene(neural_init.geometry_scene_config(cfg)), cfg.geometry.optim).modules
     stage2 = neural.build(cfg, _placeholder_scene(neural.neural_scene_config(cfg))).modules
     disc = stage2.get("disc")
     notes = [f"stage 1 (geometry): RGB surfels; stage 2: {cfg.neural.features} learned features per point, "

@@ -91,3 +91,30 @@ def test_point_only_sh_run_trains_evaluates_and_records_its_curve(tmp_path):
 def test_shipped_splat_only_config_loads():
     cfg = load_config(Config, read_yaml(REPO / "configs" / "splat_only.yaml"))
     assert cfg.neural.steps == 0 and cfg.geometry.optim.shading == "sh" and cfg.geometry.sh_degree >= 1
+
+
+def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):
+    """``geometry.init_fraction`` keeps a random subset of the hull points, ``init_shift`` moves them all
+    by that many voxels along (1,1,1)/√3, ``init: random`` draws ``max_points`` points in the box."""
+    from nsplat.tasks.neural import load_views
+    from nsplat.tasks.neural_init import initial_geometry
+
+    def start(**geometry) -> torch.Tensor:
+        raw = _tiny(tmp_path / "cache")
+        raw["geometry"] = {"grid": 24, **geometry}
+        cfg = load_config(Config, raw)
+        return initial_geometry(cfg, load_views(cfg, "train", torch.device("cpu")), seed=0).means.detach()
+
+    hull = start()
+    tenth = start(init_fraction=0.1)
+    assert tenth.shape[0] == round(0.1 * hull.shape[0])
+    assert bool((torch.cdist(tenth, hull).min(1).values < 1e-6).all())  # a subset of the hull points
+    voxel = 3.0 / 24  # default bbox [-1.5, 1.5]³ on a 24³ grid
+    shifted = start(init_shift=2.0)
+    assert torch.allclose(shifted - hull, torch.full_like(hull, 2.0 * voxel / math.sqrt(3.0)), atol=1e-6)
+    rand = start(init="random", max_points=300, bbox=[-1.0, -0.5, -0.2, 1.0, 0.5, 0.2])
+    assert rand.shape == (300, 3)
+    assert bool((rand.min(0).values >= torch.tensor([-1.0, -0.5, -0.2])).all())
+    assert bool((rand.max(0).values <= torch.tensor([1.0, 0.5, 0.2])).all())
+    with pytest.raises(ConfigError, match="geometry.init_fraction"):
+        start(init_fraction=0.0)

@@ -40,7 +40,6 @@ from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve
 from nsplat.data.procedural import ProceduralSpec, ensure_scene
 from nsplat.data.views import PosedViews
-from nsplat.data.visual_hull import hull_points
 from nsplat.engine import Engine, Trainables, checkpoint_rows, latest_payload, op_seed, write_json
 from nsplat.fitting import fit
 from nsplat.losses import discriminator_loss, generator_loss
@@ -48,6 +47,7 @@ from nsplat.metrics_image import psnr
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks.neural_config import Config, NeuralConfig
+from nsplat.tasks.neural_init import initial_geometry
 from nsplat.tasks.neural_model import NeuralRenderer, build_discriminator, neural_view
 from nsplat.view_model import ViewModel, cameras_of
 
@@ -80,14 +80,6 @@ def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
 
 
 # ---------------------------------------------------------------------------------------------- scenes
-def geometry_scene_config(cfg: Config) -> SceneConfig:
-    """Stage-1 scene: RGB colour (sigmoid), or view-dependent RGB (spherical harmonics, stored as is),
-    and the stage's learnable attributes."""
-    g = cfg.geometry
-    return SceneConfig(channels=g.channels(), learn=list(g.learn), opacity=g.opacity, scale=None,
-                       feature_activation="identity" if g.optim.shading == "sh" else "sigmoid")
-
-
 def neural_scene_config(cfg: Config) -> SceneConfig:
     """Stage-2 scene: ``C`` raw features; learnable attributes from ``neural.learn``."""
     return SceneConfig(channels=cfg.neural.features, learn=list(cfg.neural.learn), opacity=cfg.geometry.opacity,
@@ -95,22 +87,6 @@ def neural_scene_config(cfg: Config) -> SceneConfig:
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
-def _initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
-    g = cfg.geometry
-    scfg = geometry_scene_config(cfg)
-    device = train.images.device
-    if g.init == "ply":
-        return SurfelScene.load_ply(resolve(g.ply or ""), scfg, device=device)
-    hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold, dilate=g.dilate,
-                     min_seen=g.min_seen, max_points=g.max_points, seed=seed)
-    log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
-    colours = hp.colours.clamp(0.02, 0.98).to(device)
-    features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)  # SH: view-independent
-    return SurfelScene.from_points(scfg, hp.means.to(device), hp.normals.to(device),
-                                   opacities=g.init_opacity if g.opacity is None else None,
-                                   features=features, scale_factor=g.scale_factor)
-
-
 def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedViews | None = None) -> SurfelScene:
     """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``.
 
@@ -119,7 +95,7 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
     records ``{step, elapsed_s, val_psnr}``; ``elapsed_s`` is the stage's wall time so far, from before
     the initial points, without the validation renders (the time-to-quality curve of stage 1)."""
     t0, validating = time.perf_counter(), 0.0
-    scene = _initial_geometry(cfg, train, ctx.seed)
+    scene = initial_geometry(cfg, train, ctx.seed)
     g = cfg.geometry
     history: list[dict[str, float]] = []
     val_sub = val.spread(cfg.eval.val_views) if val is not None else None

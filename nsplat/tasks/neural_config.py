@@ -81,9 +81,12 @@ class GeometryConfig:
     """Stage 1: RGB surfels fitted to the training views.
 
     Attributes:
-        init: ``hull`` (visual hull of the training silhouettes) or ``ply`` (a PLY written by
+        init: ``hull`` (visual hull of the training silhouettes), ``ply`` (a PLY written by
             :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
-            run's ``geometry.ply``).
+            run's ``geometry.ply``) or ``random`` (``max_points`` points uniform in ``bbox``, random
+            normals, grey: the poor start of the time-to-quality study, docs/results.md).
+        init_fraction: keep this random fraction of the hull points (a sparse start; 1: all).
+        init_shift: move every hull point by this many voxels along ``(1, 1, 1)/√3`` (a misplaced start).
         ply: path of that PLY (relative: to the repo root).
         bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
         grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
@@ -99,7 +102,9 @@ class GeometryConfig:
             (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
     """
 
-    init: Literal["hull", "ply"] = "hull"
+    init: Literal["hull", "ply", "random"] = "hull"
+    init_fraction: float = 1.0
+    init_shift: float = 0.0
     ply: str | None = None
     bbox: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     grid: int = 64
@@ -130,6 +135,8 @@ class GeometryConfig:
                               f"{self.sh_degree} with shading {self.optim.shading!r}")
         if self.init == "ply" and not self.ply:
             raise ConfigError("geometry.ply: required when geometry.init is ply")
+        if not 0.0 < self.init_fraction <= 1.0:
+            raise ConfigError(f"geometry.init_fraction: expected a fraction in (0, 1], got {self.init_fraction}")
         if self.grid < 8:
             raise ConfigError(f"geometry.grid: expected >= 8, got {self.grid}")
         if self.max_points < 1:

@@ -18,7 +18,8 @@ from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhoue
 from nsplat.runctx import RunContext
 from nsplat.render import render_views
 from nsplat.scene import SurfelScene
-from nsplat.tasks.neural import NeuralRenderer, geometry_scene_config, render_split
+from nsplat.tasks.neural import NeuralRenderer, render_split
+from nsplat.tasks.neural_init import geometry_scene_config
 from nsplat.tasks.neural_config import Config
 
 log = logging.getLogger("nsplat.tasks.neural")
