@@ -57,6 +57,8 @@ CONFIGS: dict[str, list[str]] = {
     "unet-d3": ["neural.unet.depth=3"],
     "steps-half": ["neural.steps=500"],
     "no-gan": ["neural.gan.enabled=false"],
+    "fast": ["render.estimator=sampled", "neural.steps=500"],
+    "fast-s1half": ["render.estimator=sampled", "neural.steps=500", "geometry.optim.epochs=10"],
     "point": POINT_ONLY,
     "point-sampled": POINT_ONLY + ["render.estimator=sampled"],
     "point-truncated": POINT_ONLY + ["render.renderer=truncated"],
