@@ -280,10 +280,18 @@ def test_deterministic_backward_is_bitwise_reproducible_across_runs_and_threads(
 
 
 def _capabilities() -> list[str]:
-    """ATen CPU capabilities this CPU can run, from ``default`` up to the detected one (x86-64:
-    ``default``, ``avx2``, ``avx512``; forcing one the CPU lacks would crash with an illegal instruction)."""
+    """ATen CPU capabilities this CPU can run, from ``default`` up to the one ATen picks by itself (x86-64:
+    ``default``, ``avx2``, ``avx512``; forcing one the CPU lacks would crash with an illegal instruction).
+    Asked of a child process without ``ATEN_CPU_CAPABILITY``, so that a forced level in this process (the
+    suite run under ``ATEN_CPU_CAPABILITY=default``) does not hide the CPU's own."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "ATEN_CPU_CAPABILITY"}
+    top = subprocess.run([sys.executable, "-c", "import torch; print(torch.backends.cpu.get_cpu_capability())"],
+                         env=env, capture_output=True, text=True, check=True).stdout.strip()
     levels = ["DEFAULT", "AVX2", "AVX512"]
-    top = torch.backends.cpu.get_cpu_capability()
     return [c.lower() for c in (levels[: levels.index(top) + 1] if top in levels else ["DEFAULT", top])]
 
 
