@@ -189,13 +189,34 @@ def _load_view(scene: Path, view: SourceView, downscale: int, cache: UndistortCa
     return torch.from_numpy(cached.astype(np.float32) / scale), target
 
 
+def _load_mask(scene: Path, masks: str, view: SourceView, size: tuple[int, int]) -> torch.Tensor:
+    """``[H,W]`` float32 coverage in [0, 1] of one view at ``size = (W, H)``, from ``<masks>/<name>.png``
+    (COLMAP's mask naming) or ``<masks>/<name>``, resized and undistorted like its photo."""
+    folder = scene / masks
+    path = next((p for p in (folder / f"{view.name}.png", folder / view.name) if p.is_file()), None)
+    if path is None:
+        raise DataError(f"{folder / (view.name + '.png')}: mask of image {view.name!r} not found")
+    img = _read(path)
+    if (img.shape[1], img.shape[0]) != (view.camera.width, view.camera.height):
+        raise DataError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, its image's camera "
+                        f"{view.camera.width}x{view.camera.height}")
+    x = _resize(torch.from_numpy(img[..., :1].astype(np.float32) / float(np.iinfo(img.dtype).max)), size)
+    camera = copy.copy(view.camera)
+    if size != (camera.width, camera.height):
+        camera.rescale(*size)
+    if not camera.is_undistorted():
+        x = undistort_image(x, camera, pinhole_camera(camera))
+    return x[..., 0].clamp(0.0, 1.0)
+
+
 def load_views(scene: Path, views: Sequence[SourceView], *, downscale: int, cache_dir: str | Path | None,
-               where: Path) -> PosedViews:
+               where: Path, masks: str | None = None) -> PosedViews:
     """All ``views`` read at ``downscale``, undistorted (through the cache) and stacked, in the given order.
 
     Returns:
         :class:`PosedViews` with ``images [V,H,W,3]`` float32 in [0, 1], ``viewmats [V,4,4]``, pinhole
-        ``Ks [V,3,3]`` (float32), no masks; ``where`` (the model file) names the source in errors.
+        ``Ks [V,3,3]`` (float32) and, with a ``masks`` folder (relative to ``scene``), ``masks [V,H,W]``
+        float32 (else none); ``where`` (the model file) names the source in errors.
     """
     if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
         raise ValueError(f"downscale: expected an integer >= 1, got {downscale!r}")
@@ -217,20 +238,24 @@ def load_views(scene: Path, views: Sequence[SourceView], *, downscale: int, cach
                         f"nsplat needs one image size per scene")
     viewmats = torch.from_numpy(np.stack([v.viewmat for v in views])).float()
     viewmats[:, 3] = torch.tensor([0.0, 0.0, 0.0, 1.0])
+    size = (images[0].shape[1], images[0].shape[0])
+    coverage = None if masks is None else torch.stack([_load_mask(scene, masks, v, size) for v in views])
     return PosedViews(images=torch.stack(images), viewmats=viewmats, Ks=torch.stack(Ks).float(),
-                      names=[v.name for v in views])
+                      names=[v.name for v in views], masks=coverage)
 
 
 def make_capture(scene: Path, views: Sequence[SourceView], *, downscale: int, holdout_every: int,
-                 cache_dir: str | Path | None, where: Path, points: SfmPoints | None = None) -> Capture:
-    """Load ``views`` (:func:`load_views`) and split them by :func:`heldout_split` into a :class:`Capture`."""
+                 cache_dir: str | Path | None, where: Path, points: SfmPoints | None = None,
+                 masks: str | None = None) -> Capture:
+    """Load ``views`` (:func:`load_views`, with ``masks``) and split them by :func:`heldout_split` into a
+    :class:`Capture`."""
     names = [v.name for v in views]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise DataError(f"{where}: image {dup!r} appears more than once")
     train, test = heldout_split(names, holdout_every)
     all_views = load_views(scene, [views[i] for i in train + test], downscale=downscale, cache_dir=cache_dir,
-                           where=where)
+                           where=where, masks=masks)
     n = len(train)
     return Capture(train=all_views.subset(range(n)), test=all_views.subset(range(n, len(names))),
                    cameras={v.name: v.camera for v in views}, points=points)

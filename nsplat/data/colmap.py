@@ -95,7 +95,7 @@ def _viewmat(image: pycolmap.Image) -> np.ndarray:
 
 def load_colmap(scene: str | Path, *, downscale: int = 1, holdout_every: int = HOLDOUT_EVERY,
                 images: str = "images", sparse: str | None = None,
-                cache_dir: str | Path | None = None) -> Capture:
+                cache_dir: str | Path | None = None, masks: str | None = None) -> Capture:
     """Load a COLMAP capture: the registered images of the sparse model with their photos.
 
     Args:
@@ -105,10 +105,13 @@ def load_colmap(scene: str | Path, *, downscale: int = 1, holdout_every: int = H
         images: the photo folder, relative to ``scene`` (image names in the model are relative to it).
         sparse: the model folder relative to ``scene`` (default: :func:`find_model`).
         cache_dir: where undistorted photos go (default ``<scene>/nsplat_undistorted/``).
+        masks: a folder (relative to ``scene``) of coverage masks, ``<name>.png`` or ``<name>`` per image
+            (COLMAP's naming), resized and undistorted like the photos into ``views.masks`` (e.g. for a
+            visual hull); ``None``: no masks.
 
     Returns:
         :class:`~nsplat.data.capture.Capture`: train/test :class:`~nsplat.data.views.PosedViews`
-        (float32 images ``[V,H,W,3]``, OpenCV world→camera ``viewmats``, pinhole ``Ks``, no masks), the
+        (float32 images ``[V,H,W,3]``, OpenCV world→camera ``viewmats``, pinhole ``Ks``, masks as above), the
         source cameras by image name, and the SfM points.
     """
     scene = Path(scene)
@@ -126,4 +129,4 @@ def load_colmap(scene: str | Path, *, downscale: int = 1, holdout_every: int = H
         views.append(SourceView(name=image.name, rel=PurePosixPath(images) / image.name,
                                 camera=copy.copy(rec.cameras[image.camera_id]), viewmat=V))
     return make_capture(scene, views, downscale=downscale, holdout_every=holdout_every, cache_dir=cache_dir,
-                        where=where, points=sfm_points(rec))
+                        where=where, points=sfm_points(rec), masks=masks)

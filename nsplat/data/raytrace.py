@@ -235,6 +235,19 @@ def render(prims: list[Primitive], light: Light, viewmat: torch.Tensor, K: torch
     colour is the average over the rays that hit (0 where nothing is hit).
     """
     origins, dirs = camera_rays(viewmat, K, width, height, supersample)
+    rgb, found = shade(prims, light, origins, dirs, shadows)
+    n_sub = supersample * supersample
+    cover = found.double().reshape(height, width, n_sub)
+    colour_sum = rgb.reshape(height, width, n_sub, 3).sum(2)
+    alpha = cover.mean(-1, keepdim=True)
+    colour = colour_sum / cover.sum(-1, keepdim=True).clamp_min(1.0)
+    return torch.cat([colour, alpha], -1)
+
+
+def shade(prims: list[Primitive], light: Light, origins: torch.Tensor, dirs: torch.Tensor,
+          shadows: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shaded colour of rays ``origins [R,3]``, unit ``dirs [R,3]`` (float64): ``(rgb [R,3] in [0, 1],
+    found [R] bool)``; rays that hit nothing are black with ``found`` false."""
     hit = intersect(origins, dirs, prims)
     found = hit.prim >= 0
     pts = origins + dirs * torch.where(found, hit.t, torch.zeros_like(hit.t))[:, None]
@@ -250,10 +263,4 @@ def render(prims: list[Primitive], light: Light, viewmat: torch.Tensor, K: torch
         if bool(sel.any()):
             rgb[sel] = albedo(prim.material, hit.local[sel])
     rgb = rgb * (light.ambient + light.intensity * lambert)[:, None]
-    rgb = torch.where(found[:, None], rgb.clamp(0.0, 1.0), torch.zeros_like(rgb))
-    n_sub = supersample * supersample
-    cover = found.double().reshape(height, width, n_sub)
-    colour_sum = rgb.reshape(height, width, n_sub, 3).sum(2)
-    alpha = cover.mean(-1, keepdim=True)
-    colour = colour_sum / cover.sum(-1, keepdim=True).clamp_min(1.0)
-    return torch.cat([colour, alpha], -1)
+    return torch.where(found[:, None], rgb.clamp(0.0, 1.0), torch.zeros_like(rgb)), found

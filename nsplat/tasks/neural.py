@@ -46,6 +46,7 @@ from nsplat.losses import discriminator_loss, generator_loss
 from nsplat.metrics_image import psnr
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
+from nsplat.tasks.neural_capture import capture_views, with_capture_render
 from nsplat.tasks.neural_config import Config, NeuralConfig
 from nsplat.tasks.neural_init import initial_geometry
 from nsplat.tasks.neural_model import NeuralRenderer, build_discriminator, neural_view
@@ -72,7 +73,9 @@ def scene_root(cfg: Config) -> Path:
 
 
 def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
-    """One split of the configured scene on ``device``."""
+    """One split of the configured scene on ``device`` (a COLMAP capture: :mod:`nsplat.tasks.neural_capture`)."""
+    if cfg.data.source == "colmap":
+        return capture_views(cfg, split, device)
     limit = {"train": cfg.data.train_limit, "val": cfg.data.val_limit, "test": cfg.data.test_limit}[split]
     views = load_split(scene_root(cfg), split, resolution=cfg.data.resolution, background=cfg.data.background,
                        limit=limit)
@@ -320,6 +323,7 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
 def run(cfg: Config, ctx: RunContext) -> dict:
     """Train (stage 1, then stage 2; resumable) and evaluate the held-out split (under torchrun: rank 0
     evaluates and returns the metrics, the other ranks return ``{}`` after training)."""
+    cfg = with_capture_render(cfg)
     torch.manual_seed(ctx.seed)
     t0 = time.perf_counter()
     train = load_views(cfg, "train", ctx.device)
@@ -382,6 +386,7 @@ def _check_parallel(cfg: Config, views: int) -> None:
 
 def load_model(cfg: Config, ctx: RunContext) -> NeuralRenderer:
     """The trained renderer from the run's latest checkpoint."""
+    cfg = with_capture_render(cfg)
     payload = load_checkpoint(ctx.run_dir, map_location="cpu")
     points = checkpoint_rows(payload, "model", "scene._means")
     model = NeuralRenderer(SurfelScene(neural_scene_config(cfg), points, device=ctx.device), cfg).to(ctx.device)
@@ -395,6 +400,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRen
 
     if split not in ("train", "val", "test"):
         raise ConfigError(f"--split: expected train, val or test, got {split!r}")
+    cfg = with_capture_render(cfg)
     model = model if model is not None else load_model(cfg, ctx)
     return evaluate_split(cfg, ctx, model, load_views(cfg, split, ctx.device), split, eval_seed(cfg))
 
@@ -403,6 +409,7 @@ def render(cfg: Config, ctx: RunContext) -> Path:
     """Write ``orbit.mp4``: the trained model along a circle of cameras around the scene."""
     from nsplat.tasks.neural_eval import write_orbit
 
+    cfg = with_capture_render(cfg)
     return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), eval_seed(cfg))
 
 

@@ -32,29 +32,67 @@ class ProceduralConfig:
 
 
 @dataclasses.dataclass
+class CaptureConfig:
+    """A COLMAP capture (``data.source: colmap``; :mod:`nsplat.tasks.neural_capture`, docs/capture.md).
+
+    Attributes:
+        downscale: photos at ``1/downscale`` (read from ``<images>_<downscale>/`` when it exists).
+        holdout_every: every n-th image by name is the test split (8: the Mip-NeRF 360 / 3DGS convention).
+        val_every: of the other images, every n-th from the (n/2)-th is the validation split (not trained on).
+        images, sparse, masks: folders relative to ``data.root``: photos, model (``null``: ``sparse/0`` or
+            ``sparse``), coverage masks (``null``: none; needed only by ``geometry.init: hull``).
+        normalize: move the world so the cameras' common look-at point is the origin and scale it so their
+            median distance to it is ``radius`` (the units the learning rates were set in).
+        near_far: render near/far planes from the SfM points' depths.
+        cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
+    """
+
+    downscale: int = 1
+    holdout_every: int = 8
+    val_every: int = 8
+    images: str = "images"
+    sparse: str | None = None
+    masks: str | None = None
+    normalize: bool = True
+    radius: float = 3.2
+    near_far: bool = True
+    cache_dir: str | None = None
+
+    def __post_init__(self) -> None:
+        require_fields(self, downscale=">=1", radius=">0")
+        for key in ("holdout_every", "val_every"):
+            if getattr(self, key) < 2:
+                raise ConfigError(f"data.capture.{key}: expected >= 2, got {getattr(self, key)}")
+
+
+@dataclasses.dataclass
 class DataConfig:
     """Where the posed images come from.
 
     Attributes:
-        source: ``procedural`` (the embedded scene) or ``nerf_synthetic`` (a folder at ``root``).
-        root: NeRF-synthetic scene folder (relative paths: to the repo root).
+        source: ``procedural`` (the embedded scene), ``nerf_synthetic`` (a folder at ``root``) or ``colmap``
+            (a COLMAP capture at ``root``: ``sparse/0`` + ``images/``, settings in ``capture``).
+        root: NeRF-synthetic or COLMAP scene folder (relative paths: to the repo root).
         resolution: image side after resizing (``null``: as stored).
         background: RGB composited under the RGBA images (white: NeRF's evaluation protocol).
         train_limit, val_limit, test_limit: use only the first k frames of a split (``null``: all).
     """
 
-    source: Literal["procedural", "nerf_synthetic"] = "procedural"
+    source: Literal["procedural", "nerf_synthetic", "colmap"] = "procedural"
     root: str | None = None
     resolution: int | None = None
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     procedural: ProceduralConfig = dataclasses.field(default_factory=ProceduralConfig)
+    capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
     train_limit: int | None = None
     val_limit: int | None = None
     test_limit: int | None = None
 
     def __post_init__(self) -> None:
-        if self.source == "nerf_synthetic" and not self.root:
-            raise ConfigError("data.root: required when data.source is nerf_synthetic")
+        if self.source in ("nerf_synthetic", "colmap") and not self.root:
+            raise ConfigError(f"data.root: required when data.source is {self.source}")
+        if self.source == "colmap" and self.resolution is not None:
+            raise ConfigError("data.resolution: not used with data.source colmap; set data.capture.downscale")
         if self.resolution is not None and self.resolution < 8:
             raise ConfigError(f"data.resolution: expected >= 8 pixels or null, got {self.resolution}")
         if any(not 0.0 <= c <= 1.0 for c in self.background):
@@ -77,11 +115,55 @@ class GeometryFitConfig(FitConfig):
 
 
 @dataclasses.dataclass
+class SfmInitConfig:
+    """``geometry.init: sfm`` (:func:`nsplat.sfm_init.sfm_surfels`): outlier filters and the plane fit.
+
+    Attributes:
+        min_track: keep points seen in at least this many images. max_error: and with a mean
+            reprojection error of at most this many pixels. k: neighbours of the normal's plane fit and of
+            the isolation filter. std_ratio: isolation threshold in standard deviations.
+    """
+
+    min_track: int = 3
+    max_error: float = 2.0
+    k: int = 8
+    std_ratio: float = 2.0
+
+    def __post_init__(self) -> None:
+        require_fields(self, min_track=">=1", max_error=">0", std_ratio=">0")
+        if self.k < 3:
+            raise ConfigError(f"geometry.sfm.k: expected >= 3 neighbours, got {self.k}")
+
+
+@dataclasses.dataclass
+class BackgroundConfig:
+    """What stands behind the scene in unmasked photos (:mod:`nsplat.background`).
+
+    Attributes:
+        model: ``none`` (the constant ``data.background``: masked NeRF-synthetic scenes) or ``sphere``
+            (surfels on a far sphere, coloured from the photos, fitted and learned with the scene).
+        points: lattice points on the whole sphere (only those a training camera sees are kept).
+        radius: sphere radius in median camera distances; ``null``: from the SfM points' distances.
+    """
+
+    model: Literal["none", "sphere"] = "none"
+    points: int = 16384
+    radius: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.points < 4:
+            raise ConfigError(f"geometry.background.points: expected >= 4, got {self.points}")
+        if self.radius is not None and self.radius <= 0:
+            raise ConfigError(f"geometry.background.radius: expected > 0 or null, got {self.radius}")
+
+
+@dataclasses.dataclass
 class GeometryConfig:
     """Stage 1: RGB surfels fitted to the training views.
 
     Attributes:
-        init: ``hull`` (visual hull of the training silhouettes), ``ply`` (a PLY written by
+        init: ``hull`` (visual hull of the training silhouettes), ``sfm`` (the SfM points of a COLMAP
+            capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a PLY written by
             :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
             run's ``geometry.ply``) or ``random`` (``max_points`` points uniform in ``bbox``, random
             normals, grey: the poor start of the time-to-quality study, docs/results.md).
@@ -100,9 +182,10 @@ class GeometryConfig:
         prune_opacity: points whose opacity ends below this are dropped before stage 2.
         sh_degree: degree (1..3) of the view-dependent colour when ``optim.shading`` is ``sh``
             (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
+        sfm: :class:`SfmInitConfig`. background: :class:`BackgroundConfig` (points added to the initial ones).
     """
 
-    init: Literal["hull", "ply", "random"] = "hull"
+    init: Literal["hull", "ply", "random", "sfm"] = "hull"
     init_fraction: float = 1.0
     init_shift: float = 0.0
     ply: str | None = None
@@ -122,6 +205,8 @@ class GeometryConfig:
                                                                         checkpoint=10))
     prune_opacity: float = 0.02
     sh_degree: int = 0
+    sfm: SfmInitConfig = dataclasses.field(default_factory=SfmInitConfig)
+    background: BackgroundConfig = dataclasses.field(default_factory=BackgroundConfig)
 
     def channels(self) -> int:
         """Feature channels of the stage-1 scene: RGB, or RGB spherical harmonics up to ``sh_degree``."""
@@ -314,6 +399,10 @@ class Config:
         self.eval_render()  # unknown or invalid eval.render keys fail at load
         if "opacities" in self.neural.learn and self.geometry.opacity is not None:
             raise ConfigError("neural.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")
+        if self.data.source != "colmap" and self.geometry.init == "sfm":
+            raise ConfigError("geometry.init: sfm needs data.source colmap (SfM points)")
+        if self.data.source != "colmap" and self.geometry.background.model != "none":
+            raise ConfigError("geometry.background.model: sphere needs data.source colmap (unmasked photos)")
 
     def eval_render(self) -> RenderConfig:
         """The render settings of evaluation: ``render`` with the ``eval.render`` overrides applied."""

@@ -1,6 +1,7 @@
 """Stage 1's initial surfels for task ``neural``: the scene config, and the points (visual hull of the
-training silhouettes, a PLY, or random points in the bounding box; the hull optionally thinned or
-shifted for the poor-start study of docs/results.md)."""
+training silhouettes, the SfM points of a COLMAP capture, a PLY, or random points in the bounding box;
+the hull optionally thinned or shifted for the poor-start study of docs/results.md), plus, for unmasked
+photos, the background sphere (:mod:`nsplat.background`)."""
 from __future__ import annotations
 
 import logging
@@ -8,10 +9,11 @@ import math
 
 import torch
 
+from nsplat.config import ConfigError
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import hull_points
-from nsplat.scene import SceneConfig, SurfelScene
+from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.tasks.neural_config import Config
 
 log = logging.getLogger(__name__)
@@ -27,13 +29,17 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
 
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels (optionally a random
-    ``init_fraction`` of them, shifted by ``init_shift`` voxels), a PLY, or random points in the box."""
+    ``init_fraction`` of them, shifted by ``init_shift`` voxels), the filtered SfM points, a PLY, or random
+    points in the box; with ``geometry.background.model: sphere`` the background surfels are appended."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
     if g.init == "ply":
         return SurfelScene.load_ply(resolve(g.ply or ""), scfg, device=device)
-    if g.init == "random":
+    spacing = None
+    if g.init == "sfm":
+        means, normals, colours, spacing = _sfm_points(cfg, train, seed)
+    elif g.init == "random":
         means, normals, colours = _random_points(g.bbox, g.max_points, seed)
     else:
         hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold,
@@ -43,12 +49,51 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         keep = keep[:max(1, round(g.init_fraction * hp.means.shape[0]))].sort().values
         shift = g.init_shift * hp.voxel / math.sqrt(3.0)
         means, normals, colours = hp.means[keep] + shift, hp.normals[keep], hp.colours[keep]
+    scales = None
+    if g.background.model == "sphere":
+        from nsplat.background import scene_frame, sphere_background
+        from nsplat.tasks.neural_capture import background_radius
+
+        centre, _ = scene_frame(train.viewmats.cpu())
+        bg = sphere_background(train.to("cpu"), centre, background_radius(cfg), g.background.points)
+        log.info("background sphere: %d points, radius %.3f", bg[0].shape[0], background_radius(cfg))
+        if spacing is None:
+            spacing = torch.from_numpy(knn_spacing(means)).float()
+        scales = torch.cat([g.scale_factor * spacing, bg[3]])
+        means, normals, colours = (torch.cat([a.float(), b]) for a, b in zip((means, normals, colours), bg[:3]))
+    elif spacing is not None:
+        scales = g.scale_factor * spacing
     means, normals = means.to(device), normals.to(device)
     colours = colours.clamp(0.02, 0.98).to(device)
     features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)  # SH: view-independent
-    return SurfelScene.from_points(scfg, means, normals,
+    return SurfelScene.from_points(scfg, means, normals, scales=None if scales is None else scales.to(device),
                                    opacities=g.init_opacity if g.opacity is None else None,
                                    features=features, scale_factor=g.scale_factor)
+
+
+def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor, ...]:
+    """``(means, normals, colours, spacing)`` of the capture's filtered SfM points (``geometry.sfm``), at most
+    ``geometry.max_points`` of them (a random subset drawn with ``seed``)."""
+    from nsplat.background import camera_centres
+    from nsplat.sfm_init import sfm_surfels
+    from nsplat.tasks.neural_capture import prepare
+
+    points = prepare(cfg).points
+    if points is None or len(points) < 4:
+        raise ConfigError(f"geometry.init: sfm needs SfM points; the model under {cfg.data.root} has "
+                          f"{0 if points is None else len(points)}")
+    s = cfg.geometry.sfm
+    try:
+        sf = sfm_surfels(points, camera_centres(train.viewmats.cpu()), min_track=s.min_track, max_error=s.max_error,
+                         k=s.k, std_ratio=s.std_ratio)
+    except ValueError as exc:
+        raise ConfigError(f"geometry.sfm: {exc}") from exc
+    log.info("SfM init: %d of %d points kept", sf.means.shape[0], len(points))
+    keep = torch.arange(sf.means.shape[0])
+    if keep.numel() > cfg.geometry.max_points:
+        gen = torch.Generator().manual_seed(seed)
+        keep = torch.randperm(keep.numel(), generator=gen)[:cfg.geometry.max_points].sort().values
+    return sf.means[keep], sf.normals[keep], sf.colours[keep], sf.spacing[keep]
 
 
 def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,0 +1,126 @@
+"""Task ``neural`` on a user's own capture (``data.source: colmap``, docs/capture.md).
+
+The COLMAP folder at ``data.root`` is loaded once per process (:func:`nsplat.data.colmap.load_colmap`:
+undistorted, downscaled, every 8th image by name held out as ``test``) and prepared for training:
+
+* **validation split**: of the training images, every ``val_every``-th from the ``val_every // 2``-th is
+  held out as ``val`` (for model selection: the test views are never looked at before the end);
+* **world frame** (``normalize``): SfM's world has an arbitrary origin and scale, while the learning rates
+  and default sizes are in the units of the procedural and NeRF-synthetic scenes (cameras about 3-4 units
+  from the object). The world is moved so that the point nearest to all optical axes is the origin and
+  scaled so that the median camera distance to it is ``radius`` (a similarity: images are unchanged);
+  the SfM points move with it;
+* **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
+  (:func:`nsplat.background.depth_range`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import TYPE_CHECKING
+
+import torch
+
+from nsplat.background import depth_range, scene_frame
+from nsplat.config import ConfigError, to_dict
+from nsplat.data.paths import resolve
+from nsplat.data.views import PosedViews
+
+if TYPE_CHECKING:
+    from nsplat.data.capture import SfmPoints
+    from nsplat.tasks.neural_config import Config
+
+
+@dataclasses.dataclass
+class PreparedCapture:
+    """A capture split three ways in the training world frame.
+
+    Attributes:
+        splits: ``train``, ``val``, ``test`` :class:`PosedViews` (CPU).
+        points: the SfM points (``xyz`` in the training frame), or ``None`` when the model has none.
+        scale: world units of the training frame per SfM unit (1 without ``normalize``).
+    """
+
+    splits: dict[str, PosedViews]
+    points: "SfmPoints | None"
+    scale: float
+
+
+_CACHE: dict[str, PreparedCapture] = {}
+
+
+def _transform(views: PosedViews, centre: torch.Tensor, s: float) -> PosedViews:
+    """``views`` in the frame ``x' = s (x − centre)``: ``[R | s (R·centre + t)]`` (camera units scale too)."""
+    V = views.viewmats.double().clone()
+    V[:, :3, 3] = s * (V[:, :3, :3] @ centre + V[:, :3, 3])
+    return dataclasses.replace(views, viewmats=V.float())
+
+
+def prepare(cfg: "Config") -> PreparedCapture:
+    """The configured capture, loaded and prepared once per process (keyed by ``cfg.data``)."""
+    key = json.dumps(to_dict(cfg.data), sort_keys=True)
+    if key in _CACHE:
+        return _CACHE[key]
+    from nsplat.data.colmap import load_colmap
+
+    c = cfg.data.capture
+    cap = load_colmap(resolve(cfg.data.root or ""), downscale=c.downscale, holdout_every=c.holdout_every,
+                      images=c.images, sparse=c.sparse, masks=c.masks,
+                      cache_dir=resolve(c.cache_dir) if c.cache_dir else None)
+    n = len(cap.train)
+    val_idx = list(range(c.val_every // 2, n, c.val_every))
+    if not val_idx or len(val_idx) == n:
+        raise ConfigError(f"data.capture.val_every: {c.val_every} leaves no validation or no training view "
+                          f"among the {n} training images")
+    splits = {"train": cap.train.subset([i for i in range(n) if i not in val_idx]),
+              "val": cap.train.subset(val_idx), "test": cap.test}
+    points, s = cap.points, 1.0
+    if c.normalize:
+        centre, radius = scene_frame(torch.cat([cap.train.viewmats, cap.test.viewmats]))
+        s = c.radius / radius
+        splits = {k: _transform(v, centre, s) for k, v in splits.items()}
+        if points is not None:
+            points = dataclasses.replace(points, xyz=(s * (points.xyz.double() - centre)).float())
+    _CACHE.clear()
+    _CACHE[key] = PreparedCapture(splits=splits, points=points, scale=s)
+    return _CACHE[key]
+
+
+def capture_views(cfg: "Config", split: str, device: torch.device) -> PosedViews:
+    """One split (``train``, ``val`` or ``test``) of the configured capture on ``device``."""
+    return prepare(cfg).splits[split].to(device)
+
+
+def with_capture_render(cfg: "Config") -> "Config":
+    """``cfg`` with ``render.near/far`` from the SfM depths when ``data.capture.near_far`` applies (a COLMAP
+    source with points); otherwise ``cfg`` itself. The far plane leaves room for the background sphere."""
+    if cfg.data.source != "colmap" or not cfg.data.capture.near_far:
+        return cfg
+    prep = prepare(cfg)
+    if prep.points is None or len(prep.points) == 0:
+        return cfg
+    bg = cfg.geometry.background
+    _, radius = scene_frame(prep.splits["train"].viewmats)
+    far_radius = max(background_radius(cfg), radius) if bg.model == "sphere" else radius
+    near, far = depth_range(prep.points.xyz, prep.splits["train"], far_radius)
+    return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, near=near, far=far))
+
+
+def background_radius(cfg: "Config") -> float:
+    """Radius of the background sphere (training frame): ``geometry.background.radius`` times the median
+    camera distance, or, when that is ``null``, 1.05 times the 98th percentile of the reliable SfM points'
+    distances from the scene centre (at least 1.5 camera distances)."""
+    from nsplat.sfm_init import reliable
+
+    bg = cfg.geometry.background
+    centre, radius = scene_frame(prepare(cfg).splits["train"].viewmats)
+    if bg.radius is not None:
+        return bg.radius * radius
+    points = prepare(cfg).points
+    if points is None or len(points) == 0:
+        raise ConfigError("geometry.background.radius: null needs SfM points (the model's points3D is empty); "
+                          "give a multiple of the camera distance")
+    s = cfg.geometry.sfm
+    ok = reliable(points, s.min_track, s.max_error)
+    dist = (points.xyz[ok].double() - centre).norm(dim=1)
+    return max(1.05 * float(torch.quantile(dist, 0.98)), 1.5 * radius)
