@@ -97,14 +97,16 @@ def sphere_background(views: PosedViews, centre: torch.Tensor, radius: float, co
 
 def depth_range(points: torch.Tensor, views: PosedViews, far_radius: float, margin: float = 0.5
                 ) -> tuple[float, float]:
-    """``(near, far)`` clipping planes from the SfM ``points [P,3]``: ``near`` is ``margin`` times the 1st
-    percentile of their positive depths over ``views``; ``far`` is twice the farthest camera-to-point
-    distance that a background sphere of radius ``far_radius`` about the cameras' frame can reach."""
+    """``(near, far)`` clipping planes from the SfM ``points [P,3]``: ``near`` is ``margin`` times the
+    smallest depth of a point inside any of ``views`` (not a percentile: a small object in front of a
+    well-textured background may own well under 1 % of the points); ``far`` is twice the farthest
+    camera-to-point distance that a background sphere of radius ``far_radius`` about the cameras' frame
+    can reach."""
     _, depth, inside = project(points, views)
     d = depth[inside]
     if d.numel() == 0:
         raise ValueError("SfM points: none projects into any view; cannot set near/far")
-    near = margin * float(torch.quantile(d.float(), 0.01))
+    near = margin * float(d.min())
     centre, _ = scene_frame(views.viewmats)
     reach = float((camera_centres(views.viewmats) - centre).norm(dim=1).max()) + far_radius
     return near, 2.0 * max(reach, float(d.max()))

@@ -11,7 +11,7 @@ undistorted, downscaled, every 8th image by name held out as ``test``) and prepa
   scaled so that the median camera distance to it is ``radius`` (a similarity: images are unchanged);
   the SfM points move with it;
 * **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
-  (:func:`nsplat.background.depth_range`).
+  (:func:`nsplat.background.depth_range`: half the smallest depth, twice the farthest reach).
 """
 from __future__ import annotations
 

@@ -1,0 +1,158 @@
+"""The COLMAP path end to end on a capture made here (:mod:`nsplat.data.synthetic_capture`): the procedural
+scene photographed in front of a textured environment through a distorted ``OPENCV`` camera, no masks used,
+reconstructed by pycolmap's SfM on the CPU (regenerated once per test session, about 15 s). pycolmap's
+model is checked against the ground truth that rendered the photos, the training frame against the loaded
+cameras, and ``configs/colmap.yaml`` trains a few steps on it and evaluates the every-8th held-out views."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pycolmap
+import pytest
+import torch
+import yaml
+
+from nsplat.background import camera_centres, scene_frame
+from nsplat.cli import main
+from nsplat.config import ConfigError, load_config
+from nsplat.data.colmap import load_colmap
+from nsplat.errors import DataError
+from nsplat.data.raytrace import camera_rays, render, shade
+from nsplat.data.procedural import camera_poses, make_scene
+from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
+from nsplat.tasks.neural import Config, load_views
+from nsplat.tasks.neural_capture import prepare, with_capture_render
+
+REPO = Path(__file__).resolve().parents[1]
+SPEC = CaptureSpec(resolution=128, views=24)
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    return ensure_capture(SPEC, tmp_path_factory.mktemp("captures"))
+
+
+def _centres(views) -> np.ndarray:
+    return camera_centres(views.viewmats).numpy()
+
+
+def test_sfm_registers_every_photo_and_recovers_the_true_cameras(capture):
+    sfm = json.loads((capture / "sfm.json").read_text())
+    assert sfm["registered"] == sfm["images"] == SPEC.views and sfm["points"] > 300
+    est = load_colmap(capture, holdout_every=0)
+    gt = load_colmap(capture, holdout_every=0, sparse="sparse_gt/0", masks="masks")
+    assert est.train.names == gt.train.names == sorted(f"im_{i:03d}.png" for i in range(SPEC.views))
+    sim = pycolmap.estimate_sim3d(_centres(est.train).astype(np.float64), _centres(gt.train).astype(np.float64))
+    aligned = np.array([sim.matrix() @ np.append(c, 1.0) for c in _centres(est.train)])
+    err = np.linalg.norm(aligned - _centres(gt.train), axis=1)
+    assert err.max() < 0.01 * SPEC.radius                  # camera centres within 1 % of their distance
+    R_sim = sim.rotation.matrix()
+    for Ve, Vg in zip(est.train.viewmats.double().numpy(), gt.train.viewmats.double().numpy()):
+        dR = Ve[:3, :3] @ R_sim.T @ Vg[:3, :3].T
+        assert math.degrees(math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.3
+    cam = next(iter(est.cameras.values()))
+    assert cam.model_name == "OPENCV"
+    assert cam.focal_length_x == pytest.approx(SPEC.camera().focal_length_x, rel=0.06)
+    # the ground-truth model loads to exactly the camera and poses that rendered the photos
+    assert next(iter(gt.cameras.values())).params.tolist() == SPEC.camera().params.tolist()
+    truth = camera_poses(SPEC.views, SPEC.radius, SPEC.elevation, np.random.default_rng([SPEC.seed, 2]))
+    assert (gt.train.viewmats - truth.float()).abs().max().item() < 1e-6  # the rotation is stored as a quaternion
+    # masks: undistorted like the photos; objects cover part of each view, the environment the rest
+    assert gt.train.masks is not None and gt.train.masks.shape == gt.train.images.shape[:3]
+    cover = (gt.train.masks > 0.5).float().mean((1, 2))
+    assert bool((cover > 0.02).all()) and bool((cover < 0.6).all())
+
+
+def test_photos_have_no_blank_pixels_and_the_ray_tracer_refactor_is_exact(capture):
+    img = iio.imread(capture / "images" / "im_000.png")
+    assert img.shape == (SPEC.resolution, SPEC.resolution, 3) and img.reshape(-1, 3).max(1).min() > 0
+    # render() is shade() averaged per pixel: the procedural scenes are unchanged by the split
+    prims, light = make_scene(0, 3)
+    V = torch.eye(4, dtype=torch.float64)
+    V[2, 3] = 3.0
+    K = torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]], dtype=torch.float64)
+    rgba = render(prims, light, V, K, 16, 16, supersample=2)
+    rgb, found = shade(prims, light, *camera_rays(V, K, 16, 16, 2))
+    cover = found.double().reshape(16, 16, 4)
+    assert torch.equal(rgba[..., 3], cover.mean(-1))
+    assert torch.equal(rgba[..., :3], rgb.reshape(16, 16, 4, 3).sum(2) / cover.sum(-1, keepdim=True).clamp_min(1.0))
+
+
+def _config(capture: Path, **geometry) -> dict:
+    raw = yaml.safe_load((REPO / "configs" / "colmap.yaml").read_text())
+    raw["data"]["root"] = str(capture)
+    raw["data"]["capture"]["downscale"] = 4
+    raw["geometry"].update({"optim": {"epochs": 1, "batch": 2}, **geometry})
+    raw["geometry"]["background"]["points"] = 2048
+    raw["neural"].update({"steps": 4, "batch": 2, "features": 4, "unet": {"depth": 2, "width": 8},
+                          "gan": {"enabled": True, "width": 8, "layers": 2, "start": 0.5}})
+    raw["log"] = {"every": 1, "images": 0, "checkpoint": 2, "validate": 2, "progress": False}
+    raw["eval"].update({"draws": 1, "val_views": 2})
+    return raw
+
+
+def test_training_frame_is_a_similarity_of_the_capture(capture):
+    cfg = load_config(Config, _config(capture))
+    prep = prepare(cfg)
+    assert [len(prep.splits[k]) for k in ("train", "val", "test")] == [18, 3, 3]
+    assert prep.splits["test"].names == ["im_000.png", "im_008.png", "im_016.png"]
+    assert prep.splits["val"].names == ["im_005.png", "im_014.png", "im_023.png"]  # every 8th of the rest, from the 4th
+    raw = load_colmap(capture, downscale=4)
+    allv = torch.cat([prep.splits[k].viewmats for k in ("train", "val", "test")])
+    centre, radius = scene_frame(allv)
+    assert centre.norm().item() < 1e-4 and radius == pytest.approx(cfg.data.capture.radius, rel=1e-5)
+    # every SfM point in view lands on the same pixel through the moved camera as through the loaded one
+    train_raw = raw.train.subset([raw.train.names.index(n) for n in prep.splits["train"].names])
+    size = torch.tensor([train_raw.width, train_raw.height], dtype=torch.float64)
+    for Vn, Vr, K in zip(prep.splits["train"].viewmats[:4], train_raw.viewmats[:4], train_raw.Ks[:4]):
+        def pix(V: torch.Tensor, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            c = X.double() @ V[:3, :3].double().T + V[:3, 3].double()
+            p = c @ K.double().T
+            return p[:, :2] / p[:, 2:], c[:, 2]
+        (a, depth), (b, _) = pix(Vn, prep.points.xyz), pix(Vr, raw.points.xyz)
+        seen = (depth > 0.1) & ((b >= 0) & (b <= size)).all(1)
+        assert int(seen.sum()) > 100
+        assert (a[seen] - b[seen]).abs().max().item() < 1e-3    # float32 cameras and points
+    near, far = with_capture_render(cfg).render.near, with_capture_render(cfg).render.far
+    assert 0 < near < 0.5 * radius and far > 2 * radius
+
+
+def test_colmap_config_trains_and_evaluates_the_every_eighth_views(capture, tmp_path):
+    cfg_path = tmp_path / "colmap.yaml"
+    cfg_path.write_text(yaml.safe_dump(_config(capture)))
+    run = tmp_path / "run"
+    assert main(["--config", str(cfg_path), "--run", str(run)]) == 0
+    m = json.loads((run / "eval_test" / "metrics.json").read_text())
+    per_view = json.loads((run / "eval_test" / "per_view.json").read_text())["views"]
+    assert m["split"] == "test" and [v["name"] for v in per_view] == ["im_000.png", "im_008.png", "im_016.png"]
+    assert m["resolution"] == [SPEC.resolution // 4] * 2
+    # after a few steps the model already explains the photos far better than a constant grey would
+    test = load_views(load_config(Config, _config(capture)), "test", torch.device("cpu"))
+    grey = -10 * math.log10(float(((test.images - 0.5) ** 2).mean()))
+    assert m["psnr"]["mean"] > grey + 2.0
+    hist = json.loads((run / "history.json").read_text())["history"]
+    assert [r["step"] for r in hist] == [2, 4] and all(math.isfinite(r["val_psnr"]) for r in hist)
+
+
+def test_colmap_config_errors_name_the_key(capture):
+    raw = _config(capture)
+    raw["data"]["root"] = None
+    with pytest.raises(ConfigError, match="data.root"):
+        load_config(Config, raw)
+    with pytest.raises(ConfigError, match="geometry.init: sfm needs data.source colmap"):
+        load_config(Config, {"task": "neural", "geometry": {"init": "sfm"}})
+    with pytest.raises(ConfigError, match="geometry.background.model"):
+        load_config(Config, {"task": "neural", "geometry": {"background": {"model": "sphere"}}})
+    bad = _config(capture)
+    bad["data"]["capture"]["val_every"] = 1
+    with pytest.raises(ConfigError, match="data.capture.val_every"):
+        load_config(Config, bad)
+
+
+def test_missing_mask_is_a_one_line_error_naming_it(capture, tmp_path):
+    with pytest.raises(DataError, match=r"nomasks/im_000\.png\.png: mask of image 'im_000.png' not found"):
+        load_colmap(capture, holdout_every=0, sparse="sparse_gt/0", masks="nomasks", cache_dir=tmp_path)
