@@ -156,3 +156,17 @@ def test_colmap_config_errors_name_the_key(capture):
 def test_missing_mask_is_a_one_line_error_naming_it(capture, tmp_path):
     with pytest.raises(DataError, match=r"nomasks/im_000\.png\.png: mask of image 'im_000.png' not found"):
         load_colmap(capture, holdout_every=0, sparse="sparse_gt/0", masks="nomasks", cache_dir=tmp_path)
+
+
+def test_without_sfm_points_the_near_plane_comes_from_the_background_sphere(capture):
+    raw = _config(capture, init="hull", grid=32)
+    raw["data"]["capture"].update(sparse="sparse_gt/0", masks="masks")
+    raw["geometry"]["background"].update(radius=SPEC.environment / SPEC.radius, centre=[0.0, 0.0, -0.3])
+    cfg = with_capture_render(load_config(Config, raw))
+    dist = (camera_centres(prepare(cfg).splits["train"].viewmats) - torch.tensor([0.0, 0.0, -0.3],
+                                                                                dtype=torch.float64)).norm(dim=1)
+    assert cfg.render.near == pytest.approx(0.5 * (SPEC.environment - float(dist.max())))
+    assert cfg.render.far == pytest.approx(2.0 * (SPEC.environment + float(dist.max())))
+    raw["geometry"]["background"]["radius"] = 0.5             # inside the camera ring: an error naming the key
+    with pytest.raises(ConfigError, match="geometry.background.radius: the sphere"):
+        with_capture_render(load_config(Config, raw))

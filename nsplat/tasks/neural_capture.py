@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from nsplat.background import depth_range, scene_frame
+from nsplat.background import camera_centres, depth_range, scene_frame
 from nsplat.config import ConfigError, to_dict
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
@@ -92,30 +92,48 @@ def capture_views(cfg: "Config", split: str, device: torch.device) -> PosedViews
 
 
 def with_capture_render(cfg: "Config") -> "Config":
-    """``cfg`` with ``render.near/far`` from the SfM depths when ``data.capture.near_far`` applies (a COLMAP
-    source with points); otherwise ``cfg`` itself. The far plane leaves room for the background sphere."""
+    """``cfg`` with ``render.near/far`` set when ``data.capture.near_far`` applies to a COLMAP source:
+    from the SfM points' depths (:func:`nsplat.background.depth_range`) when the model has points, else,
+    with a background sphere, ``near`` half the smallest camera-to-sphere distance and ``far`` twice the
+    largest; otherwise ``cfg`` itself. Without a near plane the sphere's points beside a camera (depth
+    near 0) would be splatted over the whole image."""
     if cfg.data.source != "colmap" or not cfg.data.capture.near_far:
         return cfg
     prep = prepare(cfg)
-    if prep.points is None or len(prep.points) == 0:
-        return cfg
     bg = cfg.geometry.background
-    _, radius = scene_frame(prep.splits["train"].viewmats)
-    far_radius = max(background_radius(cfg), radius) if bg.model == "sphere" else radius
-    near, far = depth_range(prep.points.xyz, prep.splits["train"], far_radius)
+    centres = camera_centres(prep.splits["train"].viewmats)
+    if prep.points is not None and len(prep.points) > 0:
+        _, radius = scene_frame(prep.splits["train"].viewmats)
+        far_radius = radius
+        if bg.model == "sphere":
+            centre, sphere = background_sphere(cfg)
+            far_radius = max(sphere + float(centre.norm()), radius)
+        near, far = depth_range(prep.points.xyz, prep.splits["train"], far_radius)
+    elif bg.model == "sphere":
+        centre, sphere = background_sphere(cfg)
+        dist = (centres - centre).norm(dim=1)
+        near, far = 0.5 * (sphere - float(dist.max())), 2.0 * (sphere + float(dist.max()))
+        if near <= 0:
+            raise ConfigError(f"geometry.background.radius: the sphere (radius {sphere:.4g}) must enclose every "
+                              f"camera (up to {float(dist.max()):.4g} from its centre)")
+    else:
+        return cfg
     return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, near=near, far=far))
 
 
-def background_radius(cfg: "Config") -> float:
-    """Radius of the background sphere (training frame): ``geometry.background.radius`` times the median
-    camera distance, or, when that is ``null``, 1.05 times the 98th percentile of the reliable SfM points'
-    distances from the scene centre (at least 1.5 camera distances)."""
+def background_sphere(cfg: "Config") -> tuple[torch.Tensor, float]:
+    """``(centre [3] float64, radius)`` of the background sphere in the training frame. The centre is
+    ``geometry.background.centre`` or the cameras' look-at point; the radius is ``geometry.background.radius``
+    times the median camera distance, or, when that is ``null``, 1.05 times the 98th percentile of the
+    reliable SfM points' distances from the centre (at least 1.5 camera distances)."""
     from nsplat.sfm_init import reliable
 
     bg = cfg.geometry.background
     centre, radius = scene_frame(prepare(cfg).splits["train"].viewmats)
+    if bg.centre is not None:
+        centre = torch.tensor(bg.centre, dtype=torch.float64)
     if bg.radius is not None:
-        return bg.radius * radius
+        return centre, bg.radius * radius
     points = prepare(cfg).points
     if points is None or len(points) == 0:
         raise ConfigError("geometry.background.radius: null needs SfM points (the model's points3D is empty); "
@@ -123,4 +141,4 @@ def background_radius(cfg: "Config") -> float:
     s = cfg.geometry.sfm
     ok = reliable(points, s.min_track, s.max_error)
     dist = (points.xyz[ok].double() - centre).norm(dim=1)
-    return max(1.05 * float(torch.quantile(dist, 0.98)), 1.5 * radius)
+    return centre, max(1.05 * float(torch.quantile(dist, 0.98)), 1.5 * radius)

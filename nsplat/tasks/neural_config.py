@@ -43,7 +43,8 @@ class CaptureConfig:
             ``sparse``), coverage masks (``null``: none; needed only by ``geometry.init: hull``).
         normalize: move the world so the cameras' common look-at point is the origin and scale it so their
             median distance to it is ``radius`` (the units the learning rates were set in).
-        near_far: render near/far planes from the SfM points' depths.
+        near_far: render near/far planes from the SfM points' depths (without points: from the background
+            sphere; :func:`nsplat.tasks.neural_capture.with_capture_render`).
         cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
     """
 
@@ -144,11 +145,14 @@ class BackgroundConfig:
             (surfels on a far sphere, coloured from the photos, fitted and learned with the scene).
         points: lattice points on the whole sphere (only those a training camera sees are kept).
         radius: sphere radius in median camera distances; ``null``: from the SfM points' distances.
+        centre: sphere centre in the training frame (``null``: the cameras' common look-at point, the
+            origin of a normalised capture).
     """
 
     model: Literal["none", "sphere"] = "none"
     points: int = 16384
     radius: float | None = None
+    centre: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.points < 4:

@@ -51,12 +51,12 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         means, normals, colours = hp.means[keep] + shift, hp.normals[keep], hp.colours[keep]
     scales = None
     if g.background.model == "sphere":
-        from nsplat.background import scene_frame, sphere_background
-        from nsplat.tasks.neural_capture import background_radius
+        from nsplat.background import sphere_background
+        from nsplat.tasks.neural_capture import background_sphere
 
-        centre, _ = scene_frame(train.viewmats.cpu())
-        bg = sphere_background(train.to("cpu"), centre, background_radius(cfg), g.background.points)
-        log.info("background sphere: %d points, radius %.3f", bg[0].shape[0], background_radius(cfg))
+        centre, radius = background_sphere(cfg)
+        bg = sphere_background(train.to("cpu"), centre, radius, g.background.points)
+        log.info("background sphere: %d points, radius %.3f", bg[0].shape[0], radius)
         if spacing is None:
             spacing = torch.from_numpy(knn_spacing(means)).float()
         scales = torch.cat([g.scale_factor * spacing, bg[3]])
