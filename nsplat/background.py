@@ -10,7 +10,8 @@ the same model serves both stages (a background feature map given to the U-Net w
 only). Why this one, measured: docs/results.md ("Your own capture").
 
 :func:`scene_frame` gives the centre and camera radius of a capture from its poses alone;
-:func:`depth_range` the near/far planes from the SfM points' depths.
+:func:`fit_sphere` the sphere through the distant SfM points; :func:`depth_range` the near/far planes from
+the SfM points' depths.
 """
 from __future__ import annotations
 
@@ -36,6 +37,16 @@ def scene_frame(viewmats: torch.Tensor) -> tuple[torch.Tensor, float]:
     P = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]
     centre = torch.linalg.lstsq(P.sum(0), (P @ C[:, :, None]).sum(0)).solution[:, 0]
     return centre, float((C - centre).norm(dim=1).median())
+
+
+def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Least-squares sphere through ``points [P,3]`` (P >= 4): ``(centre [3] float64, radius)``, from the
+    linear form ``|x|² = 2 c·x + (r² − |c|²)``."""
+    x = points.double()
+    A = torch.cat([2.0 * x, torch.ones(len(x), 1, dtype=torch.float64)], 1)
+    sol = torch.linalg.lstsq(A, (x * x).sum(1, keepdim=True)).solution[:, 0]
+    centre = sol[:3]
+    return centre, float(torch.sqrt(sol[3] + centre @ centre))
 
 
 def fibonacci_sphere(count: int) -> torch.Tensor:

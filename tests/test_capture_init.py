@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from nsplat.background import camera_centres, depth_range, fibonacci_sphere, scene_frame, sphere_background
+from nsplat.background import (camera_centres, depth_range, fibonacci_sphere, fit_sphere, scene_frame,
+                               sphere_background)
 from nsplat.cameras import look_at
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
@@ -152,3 +153,13 @@ def test_depth_range_brackets_the_points_and_the_background():
     near, far = depth_range(pts, views, far_radius=20.0)
     assert near == pytest.approx(0.5, rel=1e-5)            # half the smallest depth
     assert far >= 2 * (3.0 + 20.0) - 1e-6
+
+
+def test_fit_sphere_recovers_a_noisy_partial_sphere():
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=torch.float64), dim=1)
+    d = d[d[:, 2] < 0.3]                                   # a cap is missing, as behind a scene's cameras
+    centre = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+    pts = centre + 5.0 * d + 0.01 * torch.randn(len(d), 3, generator=g, dtype=torch.float64)
+    c, r = fit_sphere(pts)
+    assert torch.allclose(c, centre, atol=0.01) and r == pytest.approx(5.0, abs=0.01)

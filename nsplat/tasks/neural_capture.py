@@ -121,17 +121,44 @@ def with_capture_render(cfg: "Config") -> "Config":
     return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, near=near, far=far))
 
 
+#: SfM points farther than this many camera distances from the look-at point are the background.
+FAR_POINTS = 1.5
+#: Fewest background points to fit the sphere to.
+MIN_FAR_POINTS = 20
+
+
+def scene_points(cfg: "Config") -> "SfmPoints | None":
+    """The SfM points within :data:`FAR_POINTS` camera distances of the cameras' look-at point (the scene;
+    the rest are the background), or ``None`` when the model has no points.
+
+    Used with ``geometry.sfm.background_points: false`` (measured in docs/results.md)."""
+    points = prepare(cfg).points
+    if points is None:
+        return None
+    look_at, radius = scene_frame(prepare(cfg).splits["train"].viewmats)
+    near = (points.xyz.double() - look_at).norm(dim=1) <= FAR_POINTS * radius
+    return dataclasses.replace(points, xyz=points.xyz[near], rgb=points.rgb[near],
+                               track_length=points.track_length[near], error=points.error[near])
+
+
 def background_sphere(cfg: "Config") -> tuple[torch.Tensor, float]:
-    """``(centre [3] float64, radius)`` of the background sphere in the training frame. The centre is
-    ``geometry.background.centre`` or the cameras' look-at point; the radius is ``geometry.background.radius``
-    times the median camera distance, or, when that is ``null``, 1.05 times the 98th percentile of the
-    reliable SfM points' distances from the centre (at least 1.5 camera distances)."""
+    """``(centre [3] float64, radius)`` of the background sphere in the training frame.
+
+    ``geometry.background.radius`` (camera distances) and ``centre`` when given. Otherwise from the
+    reliable SfM points farther than :data:`FAR_POINTS` camera distances from the cameras' look-at point
+    (the background): the least-squares sphere through them (:func:`nsplat.background.fit_sphere`; with a
+    given centre, their median distance from it), as long as it encloses every camera with a margin of
+    half a camera distance; else, or with fewer than :data:`MIN_FAR_POINTS` such points, a sphere about the
+    look-at point (or the given centre) through the 98th percentile of all reliable points' distances,
+    times 1.05, and at least 1.5 camera distances.
+    """
+    from nsplat.background import fit_sphere
     from nsplat.sfm_init import reliable
 
     bg = cfg.geometry.background
-    centre, radius = scene_frame(prepare(cfg).splits["train"].viewmats)
-    if bg.centre is not None:
-        centre = torch.tensor(bg.centre, dtype=torch.float64)
+    views = prepare(cfg).splits["train"].viewmats
+    look_at, radius = scene_frame(views)
+    centre = look_at if bg.centre is None else torch.tensor(bg.centre, dtype=torch.float64)
     if bg.radius is not None:
         return centre, bg.radius * radius
     points = prepare(cfg).points
@@ -139,6 +166,11 @@ def background_sphere(cfg: "Config") -> tuple[torch.Tensor, float]:
         raise ConfigError("geometry.background.radius: null needs SfM points (the model's points3D is empty); "
                           "give a multiple of the camera distance")
     s = cfg.geometry.sfm
-    ok = reliable(points, s.min_track, s.max_error)
-    dist = (points.xyz[ok].double() - centre).norm(dim=1)
-    return centre, max(1.05 * float(torch.quantile(dist, 0.98)), 1.5 * radius)
+    xyz = points.xyz[reliable(points, s.min_track, s.max_error)].double()
+    far = xyz[(xyz - look_at).norm(dim=1) > FAR_POINTS * radius]
+    if len(far) >= MIN_FAR_POINTS:
+        c, r = fit_sphere(far) if bg.centre is None else (centre, float((far - centre).norm(dim=1).median()))
+        if r - float((camera_centres(views) - c).norm(dim=1).max()) > 0.5 * radius:
+            return c, r
+    dist = (xyz - centre).norm(dim=1)
+    return centre, max(1.05 * float(torch.quantile(dist, 0.98)), FAR_POINTS * radius)

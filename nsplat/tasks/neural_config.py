@@ -123,12 +123,15 @@ class SfmInitConfig:
         min_track: keep points seen in at least this many images. max_error: and with a mean
             reprojection error of at most this many pixels. k: neighbours of the normal's plane fit and of
             the isolation filter. std_ratio: isolation threshold in standard deviations.
+        background_points: also make surfels of the points beyond 1.5 camera distances from the cameras'
+            look-at point (the background) when a background sphere is on (``false``: the sphere alone).
     """
 
     min_track: int = 3
     max_error: float = 2.0
     k: int = 8
     std_ratio: float = 2.0
+    background_points: bool = True
 
     def __post_init__(self) -> None:
         require_fields(self, min_track=">=1", max_error=">0", std_ratio=">0")

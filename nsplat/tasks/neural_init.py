@@ -73,12 +73,22 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
 
 def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor, ...]:
     """``(means, normals, colours, spacing)`` of the capture's filtered SfM points (``geometry.sfm``), at most
-    ``geometry.max_points`` of them (a random subset drawn with ``seed``)."""
+    ``geometry.max_points`` of them (a random subset drawn with ``seed``). With a background sphere and
+    ``geometry.sfm.background_points: false`` only the scene's points are used
+    (:func:`nsplat.tasks.neural_capture.scene_points`; all of them when fewer than ``2·geometry.sfm.k``
+    lie in the scene): the distant ones are the background, which the sphere models."""
     from nsplat.background import camera_centres
     from nsplat.sfm_init import sfm_surfels
-    from nsplat.tasks.neural_capture import prepare
+    from nsplat.tasks.neural_capture import prepare, scene_points
 
     points = prepare(cfg).points
+    if cfg.geometry.background.model == "sphere" and not cfg.geometry.sfm.background_points:
+        near = scene_points(cfg)
+        if near is not None and len(near) >= 2 * cfg.geometry.sfm.k:
+            points = near
+        else:
+            log.warning("SfM init: only %d points near the scene centre; using all %d (background ones too)",
+                        0 if near is None else len(near), 0 if points is None else len(points))
     if points is None or len(points) < 4:
         raise ConfigError(f"geometry.init: sfm needs SfM points; the model under {cfg.data.root} has "
                           f"{0 if points is None else len(points)}")
