@@ -43,6 +43,9 @@ CADENCE = {"default": ["geometry.log.validate=100", "log.validate=100"],
            "lego": ["geometry.log.validate=120", "log.validate=250"]}
 POINT_ONLY = ["neural.steps=0"]
 SH = ["geometry.optim.shading=sh", "geometry.sh_degree=3"]
+#: The stage-1 levers measured on lego 200² (docs/results.md, "Stage 1 on lego"): the sampled estimator,
+#: surfels half the 3-NN spacing and a 0.3 px² screen-space low-pass instead of 1 px².
+SHARP = ["render.estimator=sampled", "geometry.scale_factor=0.5", "render.lowpass=0.3"]
 
 #: Configurations: overrides of the scene's shipped config. "point-*" rows are stage 1 alone (no U-Net).
 CONFIGS: dict[str, list[str]] = {
@@ -63,6 +66,14 @@ CONFIGS: dict[str, list[str]] = {
     "point-sampled": POINT_ONLY + ["render.estimator=sampled"],
     "point-truncated": POINT_ONLY + ["render.renderer=truncated"],
     "point-sh3": POINT_ONLY + SH,
+    "point-sharp": POINT_ONLY + SHARP,
+    "point-sharp-24ep": POINT_ONLY + SHARP + ["geometry.optim.epochs=24"],
+    "sharp": SHARP,
+    "sharp-w16": SHARP + ["neural.unet.width=16"],
+    "sharp-w16-1000": SHARP + ["neural.unet.width=16", "neural.steps=1000"],
+    "sharp-500": SHARP + ["neural.steps=500"],
+    "sharp-w16-500": SHARP + ["neural.unet.width=16", "neural.steps=500"],
+    "sharp-w16-500-e12": SHARP + ["neural.unet.width=16", "neural.steps=500", "geometry.optim.epochs=12"],
 }
 #: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
 POOR_STARTS = {"random": ["geometry.init=random", "geometry.max_points=2400"], "tenth": ["geometry.init_fraction=0.1"],
@@ -80,23 +91,29 @@ def _read(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def run_one(scene: str, name: str, seed: int, extra: list[str]) -> Path:
-    """Train one configuration (skipped when its run folder already holds a finished run)."""
+def run_one(scene: str, name: str, seed: int, extra: list[str], cpus: str | None = None) -> Path:
+    """Train one configuration (skipped when its run folder already holds a finished run); ``cpus``: pin it
+    to these cores (``taskset -c``) with one thread per core (default: the machine's, 2 threads)."""
     run = REPO / "runs" / "ttq" / scene / f"{name}-s{seed}"
     if (run / "timing.json").is_file():
         return run
     cmd = [sys.executable, str(REPO / "train.py"), "--config", str(REPO / SCENES[scene]), "--run", str(run),
            "--overwrite", f"seed={seed}", "log.progress=false", *CADENCE[scene], *CONFIGS[name], *extra]
+    env = dict(os.environ)
+    if cpus:
+        cmd = ["taskset", "-c", cpus, *cmd]
+        env["OMP_NUM_THREADS"] = str(len(cpus.split(",")))
     before, t0 = _load(), time.perf_counter()
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env)
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise SystemExit(f"{name} seed {seed} failed:\n{proc.stderr[-3000:]}")
     (run / "ttq.json").write_text(json.dumps({
         "command": cmd[1:], "wall_s": time.perf_counter() - t0,
         "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime),
-        "load_before": before, "load_after": _load()}, indent=1))
+        "load_before": before, "load_after": _load(), "threads": int(env.get("OMP_NUM_THREADS", "0")) or None,
+        "cpus": cpus}, indent=1))
     return run
 
 
@@ -171,12 +188,13 @@ def main() -> None:
     p.add_argument("--configs", nargs="*", default=[], choices=sorted(CONFIGS), metavar="NAME")
     p.add_argument("--seeds", nargs="*", type=int, default=[0])
     p.add_argument("--budgets", nargs="*", type=float, default=None, help="seconds (default: scene's)")
+    p.add_argument("--cpus", default=None, help="pin runs to these cores, one thread each (e.g. 0 or 0,1)")
     p.add_argument("--report", action="store_true", help="only tabulate the finished runs")
     args = p.parse_args()
     if not args.report:
         for name in args.configs:
             for seed in args.seeds:
-                run_one(args.scene, name, seed, [])
+                run_one(args.scene, name, seed, [], args.cpus)
                 print(f"done: {name} seed {seed}", flush=True)
     rows = [r for name in CONFIGS for seed in range(10) if (r := summary(args.scene, name, seed)) is not None]
     budgets = args.budgets or ([60, 90, 120, 180] if args.scene == "default" else [300, 600, 900, 1500])

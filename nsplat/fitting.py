@@ -26,6 +26,7 @@ from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.views import PosedViews
 from nsplat.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
+from nsplat.losses import dssim_loss
 from nsplat.ops import tangent_frame
 from nsplat.render import RenderConfig, render, render_views
 from nsplat.scene import ATTRIBUTES, SurfelScene
@@ -125,6 +126,8 @@ class FitConfig:
             its contribution summed over all views is at least this. jitter: tangent offset of a moved
             point, in units of its source point's scale.
         densify: adaptive density control (:class:`nsplat.densify.DensifyConfig`; off by default).
+        ssim_weight: share ``s`` in [0, 1] of D-SSIM in the image loss ``(1 − s)·L1 + s·D-SSIM`` (3DGS uses
+            0.2); 0 (default): L1 alone.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
@@ -144,6 +147,7 @@ class FitConfig:
     jitter: float = 1.0
     densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
     mask_weight: float = 0.0
+    ssim_weight: float = 0.0
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -151,7 +155,7 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
-                       reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0")
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit")
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -219,6 +223,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
                                       seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
                                       background=background, with_alpha=True)
             loss = (img - images[v:v + 1]).abs().mean()
+            if cfg.ssim_weight > 0:
+                dssim = dssim_loss(img.permute(0, 3, 1, 2), images[v:v + 1].permute(0, 3, 1, 2))
+                loss = (1.0 - cfg.ssim_weight) * loss + cfg.ssim_weight * dssim
             if cfg.mask_weight > 0:
                 loss = loss + cfg.mask_weight * (alpha[..., 0] - masks[v:v + 1].float()).abs().mean()
             loss = loss / idx.numel()
