@@ -38,12 +38,10 @@ class PreparedCapture:
     Attributes:
         splits: ``train``, ``val``, ``test`` :class:`PosedViews` (CPU).
         points: the SfM points (``xyz`` in the training frame), or ``None`` when the model has none.
-        scale: world units of the training frame per SfM unit (1 without ``normalize``).
     """
 
     splits: dict[str, PosedViews]
     points: "SfmPoints | None"
-    scale: float
 
 
 _CACHE: dict[str, PreparedCapture] = {}
@@ -74,7 +72,7 @@ def prepare(cfg: "Config") -> PreparedCapture:
                           f"among the {n} training images")
     splits = {"train": cap.train.subset([i for i in range(n) if i not in val_idx]),
               "val": cap.train.subset(val_idx), "test": cap.test}
-    points, s = cap.points, 1.0
+    points = cap.points
     if c.normalize:
         centre, radius = scene_frame(torch.cat([cap.train.viewmats, cap.test.viewmats]))
         s = c.radius / radius
@@ -82,7 +80,7 @@ def prepare(cfg: "Config") -> PreparedCapture:
         if points is not None:
             points = dataclasses.replace(points, xyz=(s * (points.xyz.double() - centre)).float())
     _CACHE.clear()
-    _CACHE[key] = PreparedCapture(splits=splits, points=points, scale=s)
+    _CACHE[key] = PreparedCapture(splits=splits, points=points)
     return _CACHE[key]
 
 
