@@ -16,6 +16,10 @@
    surfels that cover the whole image.
 
 Neighbour queries use scipy's k-d tree.
+
+:func:`fill_points` adds random points where the SfM found few (3DGS's random start when points are
+missing, with a mask-free carve): uniform in a box, kept only where at least a fraction of the training
+cameras see them, coloured with the mean of the training pixels they project to.
 """
 from __future__ import annotations
 
@@ -23,9 +27,12 @@ import dataclasses
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from nsplat.background import project
 from nsplat.data.capture import SfmPoints
+from nsplat.data.views import PosedViews
 
 
 @dataclasses.dataclass
@@ -109,3 +116,55 @@ def sfm_surfels(points: SfmPoints, camera_centres: torch.Tensor, *, min_track: i
     return SfmSurfels(means=torch.from_numpy(xyz).float(), normals=torch.from_numpy(normals).float(),
                       colours=points.rgb[torch.from_numpy(index)].float(), spacing=torch.from_numpy(spacing).float(),
                       index=torch.from_numpy(index).long())
+
+
+def fill_box(xyz: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo [3], hi [3])`` float64: the axis-aligned box of ``xyz [P,3]`` grown by ``margin`` times its size
+    on each side."""
+    lo, hi = xyz.double().min(0).values, xyz.double().max(0).values
+    return lo - margin * (hi - lo), hi + margin * (hi - lo)
+
+
+def fill_points(lo: torch.Tensor, hi: torch.Tensor, views: PosedViews, count: int, min_seen: float,
+                generator: torch.Generator, rounds: int = 50) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``count`` random points uniform in the box ``lo [3]``..``hi [3]`` that at least ``min_seen`` of the
+    ``V`` training ``views`` see (in front of the camera, inside the image): a carve of the box by the
+    camera frusta, without masks.
+
+    Args:
+        lo, hi: box corners. views: the training views (``images [V,H,W,3]``). count: points wanted.
+        min_seen: fraction (0, 1] of the views that must see a point. generator: draws (CPU).
+        rounds: at most this many batches of ``4·count`` candidates are drawn.
+
+    Returns:
+        ``(means [count,3], normals [count,3], colours [count,3])`` float32: normals uniformly random,
+        colours the mean of the bilinearly sampled pixels of the views that see the point. Raises
+        ``ValueError`` when fewer than ``count`` candidates pass within ``rounds`` batches.
+    """
+    if count < 1:
+        raise ValueError(f"count: expected >= 1 fill points, got {count}")
+    if not 0.0 < min_seen <= 1.0:
+        raise ValueError(f"min_seen: expected a fraction in (0, 1], got {min_seen}")
+    lo, hi = lo.double().cpu(), hi.double().cpu()
+    kept: list[torch.Tensor] = []
+    total = 0
+    for _ in range(rounds):
+        cand = lo + (hi - lo) * torch.rand(4 * count, 3, generator=generator, dtype=torch.float64)
+        _, _, inside = project(cand, views)                     # [V,4·count]
+        cand = cand[inside.double().mean(0) >= min_seen - 1e-9]
+        kept.append(cand)
+        total += len(cand)
+        if total >= count:
+            break
+    if total < count:
+        raise ValueError(f"only {total} of {count} random points in the box {lo.tolist()}..{hi.tolist()} are seen "
+                         f"by {min_seen:.0%} of the {len(views)} training views (lower the fraction or the count)")
+    means = torch.cat(kept)[:count]
+    uv, _, inside = project(means, views)
+    grid = (uv / torch.tensor([views.width, views.height], dtype=torch.float64) * 2.0 - 1.0).float()
+    samples = F.grid_sample(views.images.permute(0, 3, 1, 2).float(), grid[:, :, None, :], mode="bilinear",
+                            padding_mode="border", align_corners=False)[:, :, :, 0]   # [V,3,count]
+    w = inside.float()
+    colours = (samples * w[:, None, :]).sum(0).T / w.sum(0).clamp_min(1.0)[:, None]
+    normals = F.normalize(torch.randn(count, 3, generator=generator), dim=-1)
+    return means.float(), normals, colours.clamp(0.0, 1.0)

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from nsplat.background import (camera_centres, depth_range, fibonacci_sphere, fit_sphere, scene_frame,
+from nsplat.background import (camera_centres, depth_range, fibonacci_sphere, fit_sphere, project, scene_frame,
                                sphere_background)
 from nsplat.cameras import look_at
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
-from nsplat.sfm_init import isolated, plane_normals, reliable, sfm_surfels
+from nsplat.sfm_init import fill_box, fill_points, isolated, plane_normals, reliable, sfm_surfels
 
 
 def _points(xyz: np.ndarray, track: np.ndarray | None = None, error: np.ndarray | None = None) -> SfmPoints:
@@ -163,3 +163,36 @@ def test_fit_sphere_recovers_a_noisy_partial_sphere():
     pts = centre + 5.0 * d + 0.01 * torch.randn(len(d), 3, generator=g, dtype=torch.float64)
     c, r = fit_sphere(pts)
     assert torch.allclose(c, centre, atol=0.01) and r == pytest.approx(5.0, abs=0.01)
+
+
+def test_fill_points_are_in_the_box_seen_by_enough_views_and_coloured_from_the_photos():
+    views = _sky_views()                                   # 12 cameras on a ring of radius 3, 60° field of view
+    lo, hi = torch.full((3,), -2.0, dtype=torch.float64), torch.full((3,), 2.0, dtype=torch.float64)
+    means, normals, colours = fill_points(lo, hi, views, 500, 1.0, torch.Generator().manual_seed(0))
+    assert means.shape == normals.shape == colours.shape == (500, 3)
+    assert bool(((means >= -2.0) & (means <= 2.0)).all())
+    _, _, inside = project(means, views)
+    assert bool(inside.all())                              # min_seen 1: every view sees every point
+    assert torch.allclose(normals.norm(dim=1), torch.ones(500), atol=1e-5)
+    # the cameras sit at height 0 looking level: a point above the horizon lands in the red top half
+    high, low = means[:, 2] > 0.1, means[:, 2] < -0.1
+    assert bool((colours[high, 0] > 0.99).all()) and bool((colours[high, 2] < 0.01).all())
+    assert bool((colours[low, 2] > 0.99).all()) and bool((colours[low, 0] < 0.01).all())
+    # a looser carve reaches farther out (points near a camera or beside the ring); fewer views see them
+    loose, _, _ = fill_points(lo, hi, views, 500, 0.25, torch.Generator().manual_seed(0))
+    _, _, seen = project(loose, views)
+    assert bool((seen.float().mean(0) >= 0.25 - 1e-6).all()) and not bool(seen.all())
+    again, _, _ = fill_points(lo, hi, views, 500, 1.0, torch.Generator().manual_seed(0))
+    assert torch.equal(again, means)                       # seeded
+
+
+def test_fill_box_grows_by_the_margin_and_an_unseen_box_is_a_clear_error():
+    xyz = torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, 4.0]])
+    lo, hi = fill_box(xyz, 0.5)
+    assert lo.tolist() == [-0.5, -1.0, -2.0] and hi.tolist() == [1.5, 3.0, 6.0]
+    views = _sky_views()
+    far = torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64)   # straight above the ring: in no view
+    with pytest.raises(ValueError, match=r"only 0 of 10 random points in the box .* are seen by 80% of the 12"):
+        fill_points(far, far + 1.0, views, 10, 0.8, torch.Generator().manual_seed(0), rounds=3)
+    with pytest.raises(ValueError, match="min_seen"):
+        fill_points(-far, far, views, 10, 0.0, torch.Generator().manual_seed(0))

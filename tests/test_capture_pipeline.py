@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from nsplat.background import camera_centres, scene_frame
+from nsplat.background import camera_centres, project, scene_frame
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
 from nsplat.data.colmap import load_colmap
@@ -26,6 +26,8 @@ from nsplat.data.procedural import camera_poses, make_scene
 from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
 from nsplat.tasks.neural import Config, load_views
 from nsplat.tasks.neural_capture import prepare, with_capture_render
+from nsplat.sfm_init import fill_box
+from nsplat.tasks.neural_init import _sfm_points, initial_geometry
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = CaptureSpec(resolution=128, views=24)
@@ -129,6 +131,7 @@ def test_colmap_config_trains_and_evaluates_the_every_eighth_views(capture, tmp_
     m = json.loads((run / "eval_test" / "metrics.json").read_text())
     per_view = json.loads((run / "eval_test" / "per_view.json").read_text())["views"]
     assert m["split"] == "test" and [v["name"] for v in per_view] == ["im_000.png", "im_008.png", "im_016.png"]
+    assert sorted(p.name for p in (run / "eval_test").glob("im_000*")) == ["im_000.png", "im_000_gt.png"]
     assert m["resolution"] == [SPEC.resolution // 4] * 2
     # after a few steps the model already explains the photos better than a constant grey (a broken near
     # plane, where the background sphere's points beside a camera covered the image, scored 11-12 dB here)
@@ -152,6 +155,45 @@ def test_colmap_config_errors_name_the_key(capture):
     bad["data"]["capture"]["val_every"] = 1
     with pytest.raises(ConfigError, match="data.capture.val_every"):
         load_config(Config, bad)
+    bad = _config(capture)
+    bad["geometry"]["sfm"].update(fill=100, fill_seen=0.0)
+    with pytest.raises(ConfigError, match=r"^geometry\.sfm\.fill_seen: expected a value in \(0, 1\], got 0.0$"):
+        load_config(Config, bad)
+    bad["geometry"]["sfm"].update(fill_seen=0.5, fill_opacity=1.0)
+    with pytest.raises(ConfigError, match=r"^geometry\.sfm\.fill_opacity: expected a value in \(0, 1\), got 1.0$"):
+        load_config(Config, bad)
+
+
+def test_sfm_fill_adds_carved_random_points_to_the_sfm_surfels(capture):
+    raw = _config(capture)
+    raw["geometry"]["sfm"]["fill"] = 0
+    base = load_config(Config, raw)
+    train = prepare(base).splits["train"]
+    plain = initial_geometry(base, train, seed=0)
+    sfm = _sfm_points(base, train, 0)[0]
+    # this small capture keeps only 2 SfM points near the centre, so ``points`` boxes all of them (background
+    # included): a wide box, of which fewer points pass a looser carve
+    for box, n, seen in (("bbox", 400, 0.9), ("points", 100, 0.3)):
+        raw = _config(capture)
+        raw["geometry"]["sfm"].update(fill=n, fill_box=box, fill_seen=seen)
+        filled = initial_geometry(load_config(Config, raw), train, seed=0)
+        assert filled.num_points == plain.num_points + n
+        extra = filled.means[len(sfm):len(sfm) + n].detach()      # after the SfM surfels, before the sphere
+        assert torch.equal(filled.means[:len(sfm)].detach(), plain.means[:len(sfm)].detach())
+        _, _, inside = project(extra.double(), train)
+        assert bool((inside.double().mean(0) >= seen - 1e-6).all())   # the carve: that share of the views sees each
+        lo, hi = (torch.full((3,), -1.5), torch.full((3,), 1.5)) if box == "bbox" else fill_box(sfm, 0.5)
+        assert bool(((extra >= lo.float() - 1e-5) & (extra <= hi.float() + 1e-5)).all())
+        op = filled.opacities.detach()                             # faint fill, the rest at init_opacity
+        assert torch.allclose(op[len(sfm):len(sfm) + n], torch.full((n,), 0.1), atol=1e-5)
+        assert torch.allclose(torch.cat([op[:len(sfm)], op[len(sfm) + n:]]), plain.opacities.detach(), atol=1e-6)
+        assert torch.allclose(plain.opacities.detach(), torch.full((plain.num_points,), base.geometry.init_opacity),
+                              atol=1e-5)
+    bad = _config(capture)
+    bad["geometry"]["sfm"].update(fill=100, fill_box="bbox")
+    bad["geometry"]["bbox"] = [40.0, 40.0, 40.0, 41.0, 41.0, 41.0]   # outside every camera's view
+    with pytest.raises(ConfigError, match="^geometry.sfm.fill: only 0 of 100 random points"):
+        initial_geometry(load_config(Config, bad), train, seed=0)
 
 
 def test_missing_mask_is_a_one_line_error_naming_it(capture, tmp_path):

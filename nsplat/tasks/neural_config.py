@@ -125,6 +125,11 @@ class SfmInitConfig:
             the isolation filter. std_ratio: isolation threshold in standard deviations.
         background_points: also make surfels of the points beyond 1.5 camera distances from the cameras'
             look-at point (the background) when a background sphere is on (``false``: the sphere alone).
+        fill: add this many random points (:func:`nsplat.sfm_init.fill_points`; ``0``: none) inside
+            ``fill_box``: ``points`` (the box of the kept SfM surfels, grown by ``fill_margin`` times its
+            size per side) or ``bbox`` (``geometry.bbox``), kept where ``fill_seen`` of the training
+            views see them, with opacity ``fill_opacity`` (low, as 3DGS starts all points: a random point in
+            the air must not hide the scene before the fitter has moved or faded it).
     """
 
     min_track: int = 3
@@ -132,9 +137,17 @@ class SfmInitConfig:
     k: int = 8
     std_ratio: float = 2.0
     background_points: bool = True
+    fill: int = 0
+    fill_box: Literal["points", "bbox"] = "points"
+    fill_margin: float = 0.5
+    fill_seen: float = 0.8
+    fill_opacity: float = 0.1
 
     def __post_init__(self) -> None:
-        require_fields(self, min_track=">=1", max_error=">0", std_ratio=">0")
+        require_fields(self, min_track=">=1", max_error=">0", std_ratio=">0", fill=">=0", fill_margin=">=0",
+                       fill_seen="prob")
+        if not 0.0 < self.fill_opacity < 1.0:
+            raise ConfigError(f"geometry.sfm.fill_opacity: expected a value in (0, 1), got {self.fill_opacity}")
         if self.k < 3:
             raise ConfigError(f"geometry.sfm.k: expected >= 3 neighbours, got {self.k}")
 

@@ -30,7 +30,8 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels (optionally a random
     ``init_fraction`` of them, shifted by ``init_shift`` voxels), the filtered SfM points, a PLY, or random
-    points in the box; with ``geometry.background.model: sphere`` the background surfels are appended."""
+    points in the box; with ``geometry.background.model: sphere`` the background surfels are appended.
+    Opacities start at ``geometry.init_opacity``, the SfM fill's at ``geometry.sfm.fill_opacity``."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
@@ -50,6 +51,9 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         shift = g.init_shift * hp.voxel / math.sqrt(3.0)
         means, normals, colours = hp.means[keep] + shift, hp.normals[keep], hp.colours[keep]
     scales = None
+    opacities = torch.full((means.shape[0],), g.init_opacity)
+    if g.init == "sfm" and g.sfm.fill > 0:                      # the fill rows end the SfM part
+        opacities[means.shape[0] - g.sfm.fill:] = g.sfm.fill_opacity
     if g.background.model == "sphere":
         from nsplat.background import sphere_background
         from nsplat.tasks.neural_capture import background_sphere
@@ -61,13 +65,14 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
             spacing = torch.from_numpy(knn_spacing(means)).float()
         scales = torch.cat([g.scale_factor * spacing, bg[3]])
         means, normals, colours = (torch.cat([a.float(), b]) for a, b in zip((means, normals, colours), bg[:3]))
+        opacities = torch.cat([opacities, torch.full((bg[0].shape[0],), g.init_opacity)])
     elif spacing is not None:
         scales = g.scale_factor * spacing
     means, normals = means.to(device), normals.to(device)
     colours = colours.clamp(0.02, 0.98).to(device)
     features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)  # SH: view-independent
     return SurfelScene.from_points(scfg, means, normals, scales=None if scales is None else scales.to(device),
-                                   opacities=g.init_opacity if g.opacity is None else None,
+                                   opacities=opacities.to(device) if g.opacity is None else None,
                                    features=features, scale_factor=g.scale_factor)
 
 
@@ -100,10 +105,33 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
         raise ConfigError(f"geometry.sfm: {exc}") from exc
     log.info("SfM init: %d of %d points kept", sf.means.shape[0], len(points))
     keep = torch.arange(sf.means.shape[0])
+    gen = torch.Generator().manual_seed(seed)
     if keep.numel() > cfg.geometry.max_points:
-        gen = torch.Generator().manual_seed(seed)
         keep = torch.randperm(keep.numel(), generator=gen)[:cfg.geometry.max_points].sort().values
-    return sf.means[keep], sf.normals[keep], sf.colours[keep], sf.spacing[keep]
+    out = sf.means[keep], sf.normals[keep], sf.colours[keep], sf.spacing[keep]
+    return _with_fill(cfg, train, out, gen) if s.fill > 0 else out
+
+
+def _with_fill(cfg: Config, train: PosedViews, sfm: tuple[torch.Tensor, ...], gen: torch.Generator
+               ) -> tuple[torch.Tensor, ...]:
+    """The SfM surfels ``sfm`` = ``(means [N,3], normals [N,3], colours [N,3], spacing [N])`` followed by
+    ``geometry.sfm.fill`` random points (:func:`nsplat.sfm_init.fill_points`) in the configured box; the
+    new points' spacing is their 3-NN spacing among all ``N + fill`` points."""
+    from nsplat.sfm_init import fill_box, fill_points
+
+    s, g = cfg.geometry.sfm, cfg.geometry
+    if s.fill_box == "points":
+        lo, hi = fill_box(sfm[0], s.fill_margin)
+    else:
+        lo, hi = torch.tensor(g.bbox[:3], dtype=torch.float64), torch.tensor(g.bbox[3:], dtype=torch.float64)
+    try:
+        means, normals, colours = fill_points(lo, hi, train.to("cpu"), s.fill, s.fill_seen, gen)
+    except ValueError as exc:
+        raise ConfigError(f"geometry.sfm.fill: {exc}") from exc
+    all_means = torch.cat([sfm[0], means])
+    spacing = torch.from_numpy(knn_spacing(all_means)[len(sfm[0]):]).float()
+    log.info("SfM init: %d random points added in the box %s..%s", s.fill, lo.tolist(), hi.tolist())
+    return all_means, torch.cat([sfm[1], normals]), torch.cat([sfm[2], colours]), torch.cat([sfm[3], spacing])
 
 
 def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
