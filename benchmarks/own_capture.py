@@ -104,6 +104,7 @@ GAP: dict[str, list[str]] = {
     "s8-fill-bbox-faint": [*S8, *FILL, "geometry.sfm.fill_opacity=0.1"],
     "s8-fill-bbox-faint-levers": [*S8, *FILL, "geometry.sfm.fill_opacity=0.1", *LEVERS],
     "e20-fill-bbox-faint-levers": [*BEFORE, "neural.steps=0", *FILL, "geometry.sfm.fill_opacity=0.1", *LEVERS],
+    "e20-gt-hull-levers": [*VARIANTS["gt-hull"], "neural.steps=0", *LEVERS],   # the reference, like for like
 }
 VARIANTS.update(GAP)
 
