@@ -73,6 +73,7 @@ CONFIGS: dict[str, list[str]] = {
     "sharp-w16-1000": SHARP + ["neural.unet.width=16", "neural.steps=1000"],
     "sharp-500": SHARP + ["neural.steps=500"],
     "sharp-w16-500": SHARP + ["neural.unet.width=16", "neural.steps=500"],
+    "sharp-w16-400": SHARP + ["neural.unet.width=16", "neural.steps=400"],
     "sharp-w16-500-e12": SHARP + ["neural.unet.width=16", "neural.steps=500", "geometry.optim.epochs=12"],
 }
 #: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
@@ -172,7 +173,8 @@ def figure(rows: list[dict], scene: str, path: Path) -> None:
         ax.plot(np.array(t) / 60, p, "-o", ms=2.5, color=colour,
                 label=f"{r['config']} (test {r['test_psnr']:.2f})" if r["seed"] == min(
                     x["seed"] for x in rows if x["config"] == r["config"]) else None)
-    ax.set_xlabel("training wall time (min, 2 threads)")
+    threads = {r.get("threads") or 2 for r in rows}
+    ax.set_xlabel(f"training wall time (min, {'/'.join(map(str, sorted(threads)))} thread(s): see the JSON per run)")
     ax.set_ylabel("val PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)

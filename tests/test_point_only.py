@@ -2,6 +2,7 @@
 ``view_colour``), stage 1 alone as a model (``neural.steps: 0``), and stage 1's validation curve."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -91,6 +92,16 @@ def test_point_only_sh_run_trains_evaluates_and_records_its_curve(tmp_path):
 def test_shipped_splat_only_config_loads():
     cfg = load_config(Config, read_yaml(REPO / "configs" / "splat_only.yaml"))
     assert cfg.neural.steps == 0 and cfg.geometry.optim.shading == "sh" and cfg.geometry.sh_degree >= 1
+
+
+def test_lego_point_only_config_is_lego_stage_one_twice_as_long():
+    """configs/lego_splat_only.yaml: configs/lego.yaml's stage 1 (data, render and surfel settings) with twice
+    the epochs and no U-Net (the point-only model the time-to-quality table measures)."""
+    point = load_config(Config, read_yaml(REPO / "configs" / "lego_splat_only.yaml"))
+    lego = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"))
+    assert point.neural.steps == 0 and point.geometry.optim.epochs == 2 * lego.geometry.optim.epochs
+    assert point.data == lego.data and point.render == lego.render
+    assert dataclasses.replace(point.geometry, optim=lego.geometry.optim) == lego.geometry
 
 
 def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):

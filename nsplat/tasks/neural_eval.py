@@ -25,6 +25,10 @@ from nsplat.tasks.neural_config import Config
 log = logging.getLogger("nsplat.tasks.neural")
 
 
+#: Extensions a view name may carry (COLMAP image names keep theirs).
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr"}
+
+
 def _stats(x: torch.Tensor) -> dict[str, float]:
     x = x.double()
     return {"mean": float(x.mean()), "std": float(x.std(unbiased=False)) if x.numel() > 1 else 0.0}
@@ -62,7 +66,9 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
     out_dir.mkdir(parents=True, exist_ok=True)
     per_view = []
     for i, name in enumerate(views.names):
-        stem = Path(name).name
+        stem = Path(name).name  # a photo keeps no second extension: im_000.png → im_000.png
+        if Path(stem).suffix.lower() in IMAGE_SUFFIXES:
+            stem = Path(stem).stem
         row = {"name": name, "psnr": float(p[i]), "ssim": float(s[i])}
         if lp is not None:
             row["lpips"] = float(lp[i])
