@@ -117,10 +117,19 @@ BUILDERS: dict[str, Callable[[Any], tuple[Models, list[str]]]] = {
 }
 
 
+#: ``data.root`` of a capture config that leaves it to the command line (``configs/colmap.yaml``): the
+#: inventory allocates with placeholder sizes and reads no data.
+CAPTURE_PLACEHOLDER = "<your COLMAP folder>"
+
+
 def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, Any, Models, list[str]]:
     """``(task, cfg, models, notes)`` of config file ``path`` with dotted ``key=value`` overrides."""
     raw = read_yaml(path)
     task = get_task(raw["task"])
+    overrides = list(overrides or [])
+    data = raw.get("data") or {}
+    if data.get("source") == "colmap" and not data.get("root") and not any(o.startswith("data.root=") for o in overrides):
+        overrides.append(f"data.root={CAPTURE_PLACEHOLDER}")  # given on the command line; never read here
     cfg = load_config(task.Config, raw, overrides)
     if raw["task"] not in BUILDERS:
         raise KeyError(f"{path.name}: no allocation builder for task {raw['task']!r} (add one to BUILDERS)")
