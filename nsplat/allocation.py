@@ -128,7 +128,8 @@ def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, A
     task = get_task(raw["task"])
     overrides = list(overrides or [])
     data = raw.get("data") or {}
-    if data.get("source") == "colmap" and not data.get("root") and not any(o.startswith("data.root=") for o in overrides):
+    given = any(o.startswith("data.root=") for o in overrides)
+    if data.get("source") == "colmap" and not data.get("root") and not given:
         overrides.append(f"data.root={CAPTURE_PLACEHOLDER}")  # given on the command line; never read here
     cfg = load_config(task.Config, raw, overrides)
     if raw["task"] not in BUILDERS:
