@@ -107,6 +107,9 @@ GAP: dict[str, list[str]] = {
     "e20-gt-hull-levers": [*VARIANTS["gt-hull"], "neural.steps=0", *LEVERS],   # the reference, like for like
 }
 VARIANTS.update(GAP)
+#: The two-stage comparison again with the shipped recipe (fill + levers for SfM; the levers for the hull).
+VARIANTS.update({"sfm-shipped": [],
+                 "gt-hull-levers": [*VARIANTS["gt-hull"], *LEVERS]})
 
 
 def train(capture: Path, run: Path, overrides: list[str]) -> float:
@@ -138,7 +141,7 @@ def main() -> None:
         return
     sfm = {**json.loads((capture / "sfm.json").read_text()), **sfm_accuracy(capture)}
     walls = {name: train(capture, args.runs / name, overrides) for name, overrides in VARIANTS.items()}
-    rows = {name: summary(name, args.runs / name, "test") for name in ("sfm", "gt-hull")}
+    rows = {name: summary(name, args.runs / name, "test") for name in ("sfm", "gt-hull", "sfm-shipped", "gt-hull-levers")}
     stage1 = {name: json.loads((args.runs / name / "eval_geometry.json").read_text())
               for name in ("bg-sphere-stage1", "bg-sphere-all-points-stage1", "bg-none-stage1")}
     lines = ["| run | points | stage 1 alone val / test PSNR | val PSNR (last) | test PSNR | test SSIM | train s |",
