@@ -49,7 +49,8 @@ SHARP = ["render.estimator=sampled", "geometry.scale_factor=0.5", "render.lowpas
 
 #: Configurations: overrides of the scene's shipped config. "point-*" rows are stage 1 alone (no U-Net).
 CONFIGS: dict[str, list[str]] = {
-    "shipped": [],
+    "shipped": [],  # the shipped config as it was when the run was made (default: issue 28 session 1)
+    "main-job": [],  # configs/default.yaml since issue 28 session 2 (sharp stage 1, U-Net width 16, 500 steps)
     "sampled": ["render.estimator=sampled"],
     "ht-pips": ["render.estimator=ht-pips"],
     "truncated": ["render.renderer=truncated"],
@@ -76,6 +77,25 @@ CONFIGS: dict[str, list[str]] = {
     "sharp-w16-400": SHARP + ["neural.unet.width=16", "neural.steps=400"],
     "sharp-w16-500-e12": SHARP + ["neural.unet.width=16", "neural.steps=500", "geometry.optim.epochs=12"],
 }
+#: Stage 2 continued from a finished point-only run (same seed, same thread count): "<config>": (point-only
+#: config, stage-2 overrides). The run loads that run's ``geometry.ply`` (no stage-1 fit of its own); its
+#: curve is the point-only run's stage-1 curve followed by stage 2, offset by that run's stage-1 seconds, so
+#: it reads as one uninterrupted training run (stage 1 is deterministic across thread counts: docs/op.md §4).
+STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
+    "s1-24ep+s2-250": ("point-24ep", ["neural.steps=250", "neural.view_colour=false"]),
+    "s1-24ep+s2-500": ("point-24ep", ["neural.steps=500", "neural.view_colour=false"]),
+    "s1-24ep+s2-1000": ("point-24ep", ["neural.steps=1000", "neural.view_colour=false"]),
+    "s1-24ep+s2-500-vc": ("point-24ep", ["neural.steps=500", "neural.view_colour=true"]),
+    "s1-48ep+s2-500": ("point-48ep", ["neural.steps=500", "neural.view_colour=false"]),
+    "s1-48ep+s2-500-vc": ("point-48ep", ["neural.steps=500", "neural.view_colour=true"]),
+    "point-24ep-eval": ("point-24ep", ["neural.steps=0"]),  # its surfels re-evaluated (eval.draws averaged)
+    "s1-24ep+s2-250-lowlr": ("point-24ep", ["neural.steps=250", "neural.view_colour=false",
+                                            "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
+    "s1-24ep+s2-250-f3": ("point-24ep", ["neural.steps=250", "neural.features=3", "neural.view_colour=false"]),
+}
+CONFIGS.update({"point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
+                "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
+CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})
 #: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
 POOR_STARTS = {"random": ["geometry.init=random", "geometry.max_points=2400"], "tenth": ["geometry.init_fraction=0.1"],
                "shift3": ["geometry.init_shift=3"]}
@@ -98,6 +118,11 @@ def run_one(scene: str, name: str, seed: int, extra: list[str], cpus: str | None
     run = REPO / "runs" / "ttq" / scene / f"{name}-s{seed}"
     if (run / "timing.json").is_file():
         return run
+    if name in STAGE1_FROM:
+        ply = REPO / "runs" / "ttq" / scene / f"{STAGE1_FROM[name][0]}-s{seed}" / "geometry.ply"
+        if not ply.is_file():
+            raise SystemExit(f"{name}: run {STAGE1_FROM[name][0]} (seed {seed}) first; {ply} is missing")
+        extra = ["geometry.init=ply", f"geometry.ply={ply}", "geometry.optim.epochs=0", *extra]
     cmd = [sys.executable, str(REPO / "train.py"), "--config", str(REPO / SCENES[scene]), "--run", str(run),
            "--overwrite", f"seed={seed}", "log.progress=false", *CADENCE[scene], *CONFIGS[name], *extra]
     env = dict(os.environ)
@@ -118,12 +143,14 @@ def run_one(scene: str, name: str, seed: int, extra: list[str], cpus: str | None
     return run
 
 
-def curve(run: Path) -> list[tuple[float, float]]:
-    """``(training seconds, val PSNR)`` of stage 1 then stage 2."""
-    geo = (_read(run / "geometry_history.json") or {}).get("history", [])
+def curve(run: Path, stage1: Path | None = None) -> list[tuple[float, float]]:
+    """``(training seconds, val PSNR)`` of stage 1 then stage 2; ``stage1``: the run whose stage 1 this one
+    continues (:data:`STAGE1_FROM`), its curve and time come first."""
+    geo = (_read((stage1 or run) / "geometry_history.json") or {}).get("history", [])
     pts = [(h["elapsed_s"], h["val_psnr"]) for h in geo]
     timing = _read(run / "timing.json") or {}
-    offset = timing.get("geometry_s", 0.0)
+    offset = timing.get("geometry_s", 0.0) + ((_read(stage1 / "timing.json") or {}).get("geometry_s", 0.0)
+                                              if stage1 else 0.0)
     pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read(run / "history.json") or {}).get("history", [])]
     return pts
 
@@ -144,9 +171,13 @@ def summary(scene: str, name: str, seed: int) -> dict | None:
     geometry = _read(run / "eval_geometry.json") or {}
     test = metrics["psnr"]["mean"] if metrics else geometry[split]["psnr"]["mean"]
     points = metrics["points"] if metrics else geometry.get("points")
-    return {"config": name, "seed": seed, "overrides": CONFIGS[name], "train_s": timing["train_total_s"],
-            "stage1_s": timing["geometry_s"], "stage1_test_psnr": geometry.get(split, {}).get("psnr", {}).get("mean"),
-            "test_psnr": test, "points": points, "curve": curve(run), **(_read(run / "ttq.json") or {})}
+    stage1 = REPO / "runs" / "ttq" / scene / f"{STAGE1_FROM[name][0]}-s{seed}" if name in STAGE1_FROM else None
+    s1 = (_read(stage1 / "timing.json") or {}).get("geometry_s", 0.0) if stage1 else 0.0
+    return {"config": name, "seed": seed, "overrides": CONFIGS[name],
+            "stage1_from": STAGE1_FROM[name][0] if stage1 else None, "train_s": timing["train_total_s"] + s1,
+            "stage1_s": timing["geometry_s"] + s1,
+            "stage1_test_psnr": geometry.get(split, {}).get("psnr", {}).get("mean"),
+            "test_psnr": test, "points": points, "curve": curve(run, stage1), **(_read(run / "ttq.json") or {})}
 
 
 def table(rows: list[dict], budgets: list[float]) -> str:
@@ -192,6 +223,9 @@ def main() -> None:
     p.add_argument("--budgets", nargs="*", type=float, default=None, help="seconds (default: scene's)")
     p.add_argument("--cpus", default=None, help="pin runs to these cores, one thread each (e.g. 0 or 0,1)")
     p.add_argument("--report", action="store_true", help="only tabulate the finished runs")
+    p.add_argument("--plot", nargs="*", default=None, metavar="NAME",
+                   help="configurations drawn in the figure (default: every finished one)")
+    p.add_argument("--figure", default=None, help="figure file stem (default: time_to_quality-<scene>)")
     args = p.parse_args()
     if not args.report:
         for name in args.configs:
@@ -204,7 +238,8 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"time_to_quality-{args.scene}.json").write_text(json.dumps(
         {"scene": args.scene, "budgets_s": budgets, "runs": rows}, indent=1))
-    figure(rows, args.scene, IMAGES / f"time_to_quality-{args.scene}.png")
+    figure([r for r in rows if args.plot is None or r["config"] in args.plot], args.scene,
+           IMAGES / f"{args.figure or f'time_to_quality-{args.scene}'}.png")
 
 
 if __name__ == "__main__":

@@ -102,13 +102,19 @@ def build_refine(cfg: Any) -> tuple[Models, list[str]]:
 
 
 def build_neural(cfg: Any) -> tuple[Models, list[str]]:
-    """Stage 1's scene, stage 2's renderer and (when enabled) the discriminator."""
+    """Stage 1's scene, stage 2's renderer and (when enabled) the discriminator; with ``neural.steps: 0`` (the
+    point-only model) stage 1's scene alone, as the task builds."""
     stage1 = fitting.build(_placeholder_scene(neural_init.geometry_scene_config(cfg)), cfg.geometry.optim).modules
+    colour = f"SH degree {cfg.geometry.sh_degree} surfels" if cfg.geometry.optim.shading == "sh" else "RGB surfels"
+    points = f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"
+    if cfg.neural.steps == 0:
+        return {"stage1_scene": stage1["scene"]}, [f"stage 1 (geometry): {colour}; no stage 2 (neural.steps: 0: "
+                                                    "the surfels are the model)", points]
     stage2 = neural.build(cfg, _placeholder_scene(neural.neural_scene_config(cfg))).modules
     disc = stage2.get("disc")
-    notes = [f"stage 1 (geometry): RGB surfels; stage 2: {cfg.neural.features} learned features per point, "
-             f"U-Net shader, PatchGAN {'on' if disc is not None else 'off (not built)'}",
-             f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"]
+    view = " (+ stage 1's SH coefficients: neural.view_colour)" if cfg.neural.view_colour else ""
+    notes = [f"stage 1 (geometry): {colour}; stage 2: {cfg.neural.features} learned features per point{view}, "
+             f"U-Net shader, PatchGAN {'on' if disc is not None else 'off (not built)'}", points]
     return {"stage1_scene": stage1["scene"], "stage2": stage2["model"], "discriminator": disc}, notes
 
 

@@ -128,6 +128,8 @@ class FitConfig:
         densify: adaptive density control (:class:`nsplat.densify.DensifyConfig`; off by default).
         ssim_weight: share ``s`` in [0, 1] of D-SSIM in the image loss ``(1 − s)·L1 + s·D-SSIM`` (3DGS uses
             0.2); 0 (default): L1 alone.
+        sh_rest_lr: with ``shading: sh``, the SH coefficients beyond the mean colour (feature channels
+            ``3:``) step at this fraction (in (0, 1]) of the features' rate (3DGS: 1/20); 1 (default): the same.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
@@ -148,6 +150,7 @@ class FitConfig:
     densify: DensifyConfig = dataclasses.field(default_factory=DensifyConfig)
     mask_weight: float = 0.0
     ssim_weight: float = 0.0
+    sh_rest_lr: float = 1.0
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -155,7 +158,8 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
-                       reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit")
+                       reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit",
+                       sh_rest_lr="prob")
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -239,7 +243,13 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         distributed.all_reduce_grads(optimizer)
         if stats is not None:  # every rank holds the whole batch's statistics (and checkpoints them)
             stats.add_(distributed.all_reduce_sum(local.grad), distributed.all_reduce_sum(local.views))
+        rest = None
+        if cfg.shading == "sh" and cfg.sh_rest_lr < 1.0 and "features" in scene.cfg.learn:
+            rest = scene.tensor("features")[:, 3:].detach().clone()
         optimizer.step()
+        if rest is not None:  # old + sh_rest_lr · (Adam's step): the higher bands move at the smaller rate
+            with torch.no_grad():
+                scene.tensor("features")[:, 3:].lerp_(rest, 1.0 - cfg.sh_rest_lr)
         out = distributed.all_reduce_scalars({"train/loss": loss_val})
         if s + 1 == steps_per_epoch:
             moved = 0

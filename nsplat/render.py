@@ -21,6 +21,9 @@ from nsplat.scene import SurfelScene
 from nsplat.sh import view_colour
 from nsplat.shading import lambert
 
+#: Seed offset between the independent draws of an averaged render (``draws`` > 1).
+DRAW_STRIDE = 1 << 20
+
 RENDERERS = ("splat", "dense", "truncated")
 
 
@@ -128,10 +131,14 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                  cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
-                 background: torch.Tensor | None = None,
-                 with_alpha: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+                 background: torch.Tensor | None = None, with_alpha: bool = False,
+                 draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
     ``with_alpha``: ``(images, alpha [B,H,W,1])``).
+
+    ``draws``: the images (and alpha) are the mean of that many independent op draws, draw ``j`` rendered
+    with every seed shifted by ``j·DRAW_STRIDE`` (draw 0 is the one-draw render): less sampling noise in
+    evaluation renders of the stochastic op, at ``draws`` times the cost.
 
     With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
     paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
@@ -139,6 +146,13 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     With ``shading="sh"`` the features are view-dependent RGB (spherical harmonics,
     :func:`nsplat.sh.view_colour`), also evaluated and rendered per camera.
     """
+    if draws < 1:
+        raise ValueError(f"draws: expected an int >= 1, got {draws}")
+    if draws > 1:
+        runs = [render_views(scene, viewmats, Ks, width, height, cfg, seed=seed + j * DRAW_STRIDE, shading=shading,
+                             background=background, with_alpha=True) for j in range(draws)]
+        image = torch.stack([r[0] for r in runs]).mean(0)
+        return (image, torch.stack([r[1] for r in runs]).mean(0)) if with_alpha else image
     if shading == "none":
         outs = [render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
                        width, height, cfg, seed=seed, background=background)]

@@ -200,3 +200,72 @@ def test_eval_draws_average_independent_feature_images(cache, tmp_path):
     raw["eval"]["draws"] = 0
     with pytest.raises(ConfigError, match="eval.draws"):
         load_config(Config, raw)
+
+
+def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
+    """The point-only model is evaluated like the U-Net's feature images: ``eval_geometry.json`` holds the PSNR
+    of the mean of ``eval.draws`` surfel renders (``render_views(draws=…)``: draw j with the seeds shifted by
+    j·DRAW_STRIDE), which has less sampling noise than one draw; ``draws`` < 1 is an error naming it."""
+    from nsplat.metrics_image import psnr
+    from nsplat.render import DRAW_STRIDE, render_views
+    from nsplat.tasks.neural_eval import evaluate_geometry
+
+    raw = _tiny(cache)
+    raw["eval"]["draws"] = 3
+    cfg = load_config(Config, raw)
+    ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
+    train = load_views(cfg, "train", ctx.device)
+    scene = fit_geometry(cfg, ctx, train)
+    views = train.subset([0, 1, 2])
+    with torch.no_grad():
+        one = [render_views(scene, views.viewmats, views.Ks, views.width, views.height, cfg.eval_render(),
+                            seed=7 + j * DRAW_STRIDE, background=views.background, shading="none")
+               for j in range(3)]
+        avg = render_views(scene, views.viewmats, views.Ks, views.width, views.height, cfg.eval_render(), seed=7,
+                           background=views.background, shading="none", draws=3)
+    assert torch.allclose(avg, torch.stack(one).mean(0), atol=1e-6) and not torch.allclose(avg, one[0], atol=1e-3)
+    out = evaluate_geometry(cfg, ctx, {"train": views}, seed=7)
+    expected = psnr(avg.clamp(0, 1), views.images).mean()
+    assert out["train"]["psnr"]["mean"] == pytest.approx(float(expected), abs=1e-4)
+    with pytest.raises(ValueError, match="draws"):
+        render_views(scene, views.viewmats, views.Ks, views.width, views.height, cfg.eval_render(), draws=0)
+
+
+def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
+    """``neural.view_colour``: the stage-2 points carry stage 1's higher SH coefficients (R = 3·((L+1)² − 1)
+    extra stored channels, nothing more splatted), the first three splatted channels are the SH colour seen
+    from each camera — so the untrained residual U-Net reproduces the stage-1 render (the same op draws:
+    camera b with seed + b) — and the SH coefficients learn. Off (the default), nothing is allocated; on
+    without SH stage-1 colour, a config error names the option."""
+    from nsplat.render import render_views
+
+    raw = _tiny(cache, view_colour=True)
+    raw["geometry"].update({"sh_degree": 1, "prune_opacity": 0.0})
+    raw["geometry"]["optim"]["shading"] = "sh"
+    cfg = load_config(Config, raw)
+    ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
+    train = load_views(cfg, "train", ctx.device)
+    geo = fit_geometry(cfg, ctx, train)
+    with torch.no_grad():
+        geo.tensor("features")[:, 3:] += 0.3 * torch.randn(geo.num_points, 9, generator=torch.Generator().manual_seed(1))
+    model = build(cfg, neural_scene_from(cfg, geo, 0)).modules["model"]
+    C = cfg.neural.features
+    assert model.scene.cfg.channels == C + 9 and model.cond_channels == C + 1
+    views = train.subset([0, 1, 2])
+    rgb, cond = model(views.viewmats, views.Ks, views.width, views.height, seed=5)
+    with torch.no_grad():
+        stage1 = render_views(geo, views.viewmats, views.Ks, views.width, views.height, cfg.render, seed=5,
+                              shading="sh", background=views.background)
+    assert torch.allclose(cond[:, :3].permute(0, 2, 3, 1), stage1, atol=1e-5)
+    # The residual head starts at zero: RGB = the base colour (clamped to [1e-3, 1 − 1e-3] by its logit).
+    assert torch.allclose(rgb.permute(0, 2, 3, 1), stage1.clamp(1e-3, 1 - 1e-3), atol=1e-4)
+    rgb.square().mean().backward()
+    assert model.scene.tensor("features").grad[:, C:].abs().sum() > 0
+    raw_off = _tiny(cache)
+    raw_off["geometry"].update({"sh_degree": 1})
+    raw_off["geometry"]["optim"]["shading"] = "sh"
+    off = load_config(Config, raw_off)
+    assert off.view_rest() == 0
+    assert build(off, neural_scene_from(off, geo, 0)).modules["model"].scene.cfg.channels == C
+    with pytest.raises(ConfigError, match="neural.view_colour"):
+        load_config(Config, _tiny(cache, view_colour=True))

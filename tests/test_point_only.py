@@ -2,7 +2,6 @@
 ``view_colour``), stage 1 alone as a model (``neural.steps: 0``), and stage 1's validation curve."""
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -95,13 +94,12 @@ def test_shipped_splat_only_config_loads():
 
 
 def test_lego_point_only_config_is_lego_stage_one_twice_as_long():
-    """configs/lego_splat_only.yaml: configs/lego.yaml's stage 1 (data, render and surfel settings) with twice
-    the epochs and no U-Net (the point-only model the time-to-quality table measures)."""
+    """configs/lego_splat_only.yaml: configs/lego.yaml's stage 1 (data, render and surfel settings, schedule)
+    and no U-Net (the point-only model the time-to-quality table measures)."""
     point = load_config(Config, read_yaml(REPO / "configs" / "lego_splat_only.yaml"))
     lego = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"))
-    assert point.neural.steps == 0 and point.geometry.optim.epochs == 2 * lego.geometry.optim.epochs
-    assert point.data == lego.data and point.render == lego.render
-    assert dataclasses.replace(point.geometry, optim=lego.geometry.optim) == lego.geometry
+    assert point.neural.steps == 0 and lego.neural.steps > 0
+    assert point.data == lego.data and point.render == lego.render and point.geometry == lego.geometry
 
 
 def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):

@@ -274,3 +274,24 @@ def test_fit_ssim_weight_mixes_l1_and_dssim_and_is_range_checked(tmp_path):
         assert out["train/loss"] == pytest.approx(expected, rel=1e-5), (s, out["train/loss"], expected)
     with pytest.raises(ConfigError, match="ssim_weight"):
         FitConfig(ssim_weight=1.5)
+
+
+def test_fit_sh_rest_lr_scales_the_higher_bands_step_only(tmp_path):
+    """``sh_rest_lr = r`` with ``shading: sh``: after one Adam step the mean-colour channels ``:3`` move exactly
+    as with ``r = 1`` and the higher SH coefficients ``3:`` move ``r`` times as far (the same gradients: the
+    dense renderer is deterministic); a value outside (0, 1] is a config error naming the option."""
+    _, images, vm, Ks, _ = _tiny_problem(n=120, views=4, res=24)
+    s0, n0 = fibonacci_sphere(120, torch.zeros(3), 1.05)
+    start = torch.rand(120, 12, generator=torch.Generator().manual_seed(0)) * 0.5
+    moved = {}
+    for r in (1.0, 0.05):
+        scene = SurfelScene.from_points(SceneConfig(channels=12), s0.clone(), n0.clone(), features=start.clone())
+        cfg = FitConfig(epochs=1, batch=4, learn=_lr(1e-2), reposition=False, shading="sh", sh_rest_lr=r)
+        fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / f"r{r}",
+            log=LogConfig(checkpoint=100, progress=False))
+        moved[r] = scene.features.detach() - start
+    assert moved[1.0][:, 3:].abs().max() > 1e-3  # the higher bands do move at the full rate
+    torch.testing.assert_close(moved[0.05][:, :3], moved[1.0][:, :3], rtol=0, atol=1e-7)
+    torch.testing.assert_close(moved[0.05][:, 3:], 0.05 * moved[1.0][:, 3:], rtol=1e-4, atol=1e-7)
+    with pytest.raises(ConfigError, match="sh_rest_lr"):
+        FitConfig(sh_rest_lr=0.0)

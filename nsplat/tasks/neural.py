@@ -84,9 +84,10 @@ def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
 
 # ---------------------------------------------------------------------------------------------- scenes
 def neural_scene_config(cfg: Config) -> SceneConfig:
-    """Stage-2 scene: ``C`` raw features; learnable attributes from ``neural.learn``."""
-    return SceneConfig(channels=cfg.neural.features, learn=list(cfg.neural.learn), opacity=cfg.geometry.opacity,
-                       scale=None, feature_activation="identity")
+    """Stage-2 scene: ``C`` raw features (+ stage 1's higher SH coefficients with ``neural.view_colour``);
+    learnable attributes from ``neural.learn``."""
+    return SceneConfig(channels=cfg.neural.features + cfg.view_rest(), learn=list(cfg.neural.learn),
+                       opacity=cfg.geometry.opacity, scale=None, feature_activation="identity")
 
 
 # ---------------------------------------------------------------------------------------------- stage 1
@@ -94,9 +95,10 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
     """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``.
 
     With ``geometry.log.validate > 0`` and ``val``, the stage-1 surfels are rendered on ``val``
-    (``eval.val_views`` of them, evaluation settings) at that cadence and ``geometry_history.json``
-    records ``{step, elapsed_s, val_psnr}``; ``elapsed_s`` is the stage's wall time so far, from before
-    the initial points, without the validation renders (the time-to-quality curve of stage 1)."""
+    (``eval.val_views`` of them, evaluation settings, the mean of ``eval.draws`` draws) at that cadence
+    and ``geometry_history.json`` records ``{step, elapsed_s, val_psnr}``; ``elapsed_s`` is the stage's
+    wall time so far, from before the initial points, without the validation renders (the time-to-quality
+    curve of stage 1)."""
     t0, validating = time.perf_counter(), 0.0
     scene = initial_geometry(cfg, train, ctx.seed)
     g = cfg.geometry
@@ -109,7 +111,7 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
         with torch.no_grad():
             rgb = gateway.render_views(scene, val_sub.viewmats, val_sub.Ks, val_sub.width, val_sub.height,
                                        cfg.eval_render(), seed=eval_seed(cfg), shading=g.optim.shading,
-                                       background=val_sub.background).clamp(0, 1)
+                                       background=val_sub.background, draws=cfg.eval.draws).clamp(0, 1)
         value = float(psnr(rgb, val_sub.images).mean())
         history.append({"step": done, "elapsed_s": t1 - t0 - validating, "val_psnr": value})
         write_json(ctx.run_dir / "geometry_history.json", {"history": history})
@@ -127,7 +129,8 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
 
 @torch.no_grad()
 def neural_scene_from(cfg: Config, geo: SurfelScene, seed: int) -> SurfelScene:
-    """Stage-2 scene from the stage-1 surfels: geometry copied, features = [colour, N(0, σ²)…].
+    """Stage-2 scene from the stage-1 surfels: geometry copied, features = [colour, N(0, σ²)…] (with
+    ``neural.view_colour``: followed by stage 1's higher SH coefficients).
 
     Points with opacity below ``geometry.prune_opacity`` are dropped.
     """
@@ -142,6 +145,8 @@ def neural_scene_from(cfg: Config, geo: SurfelScene, seed: int) -> SurfelScene:
     feats = feats.to(geo.means.device)
     k = min(3, C)
     feats[:, :k] = geo.features[keep][:, :k]
+    if cfg.view_rest():
+        feats = torch.cat([feats, geo.features[keep][:, 3:]], 1)
     scfg = neural_scene_config(cfg)
     kwargs = {"features": feats}
     if scfg.opacity is None:

@@ -316,6 +316,11 @@ class NeuralConfig:
         residual: the U-Net predicts a residual (in logit space, zero-initialised head) around the
             first three splatted feature channels, which start as the stage-1 colours composited on
             the data background; so stage 2 starts from the stage-1 render.
+        view_colour: keep stage 1's view-dependent colour (needs ``geometry.optim.shading: sh``): the
+            stage-2 points also carry stage 1's higher SH coefficients (``3·((L+1)² − 1)`` more feature
+            channels, learned with ``learn.features``), and the first three splatted channels are the
+            SH colour seen from each camera (:func:`nsplat.sh.view_colour`) instead of the mean colour; so
+            stage 2 starts from the stage-1 render itself. ``false``: the mean colour (nothing allocated).
         learn: learnable point attributes → learning rate (others are frozen buffers).
         lr: U-Net learning rate. betas: its Adam decay rates.
         lr_final: every learning rate decays exponentially to this fraction at the last step.
@@ -330,6 +335,7 @@ class NeuralConfig:
     feature_init_std: float = 0.1
     alpha_input: bool = True
     residual: bool = True
+    view_colour: bool = False
     learn: dict[str, float] = dataclasses.field(default_factory=lambda: {"features": 0.01, "means": 1e-4,
                                                                          "opacities": 0.01})
     lr: float = 1e-3
@@ -419,10 +425,17 @@ class Config:
         self.eval_render()  # unknown or invalid eval.render keys fail at load
         if "opacities" in self.neural.learn and self.geometry.opacity is not None:
             raise ConfigError("neural.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")
+        if self.neural.view_colour and self.geometry.optim.shading != "sh":
+            raise ConfigError("neural.view_colour: needs geometry.optim.shading: sh (a view-dependent stage-1 "
+                              f"colour), got {self.geometry.optim.shading!r}")
         if self.data.source != "colmap" and self.geometry.init == "sfm":
             raise ConfigError("geometry.init: sfm needs data.source colmap (SfM points)")
         if self.data.source != "colmap" and self.geometry.background.model != "none":
             raise ConfigError("geometry.background.model: sphere needs data.source colmap (unmasked photos)")
+
+    def view_rest(self) -> int:
+        """Feature channels of the higher SH coefficients the stage-2 points carry (``neural.view_colour``)."""
+        return self.geometry.channels() - 3 if self.neural.view_colour else 0
 
     def eval_render(self) -> RenderConfig:
         """The render settings of evaluation: ``render`` with the ``eval.render`` overrides applied."""

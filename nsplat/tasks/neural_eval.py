@@ -95,14 +95,15 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
 @torch.no_grad()
 def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews], seed: int) -> dict:
     """Stage 1 alone, the point-based baseline the U-Net must beat: the run's ``geometry.ply`` (RGB
-    surfels) rendered by the op (evaluation settings) into each split of ``splits``; PSNR/SSIM written
-    to ``eval_geometry.json`` and returned as ``{split: {psnr, ssim}}``."""
+    surfels) rendered by the op (evaluation settings, the mean of ``eval.draws`` draws like the U-Net's
+    feature images) into each split of ``splits``; PSNR/SSIM written to ``eval_geometry.json`` and returned
+    as ``{split: {psnr, ssim}}``."""
     scene = SurfelScene.load_ply(ctx.run_dir / "geometry.ply", geometry_scene_config(cfg), device=ctx.device)
     out: dict = {"points": scene.num_points}
     for split, views in splits.items():
         rgbs = [render_views(scene, views.viewmats[s:s + 4], views.Ks[s:s + 4], views.width, views.height,
                              cfg.eval_render(), seed=seed + s, shading=cfg.geometry.optim.shading,
-                             background=views.background)
+                             background=views.background, draws=cfg.eval.draws)
                 for s in range(0, len(views), 4)]
         rgb = torch.cat(rgbs).clamp(0, 1)
         out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}
