@@ -98,3 +98,18 @@ def test_every_shipped_config_builds_and_has_an_inventory(config):
 
 AT_STORAGE = {"means": "_means", "normals": "_normals", "scales": "_log_scales", "opacities": "_opacity_logits",
               "features": "_features"}
+
+
+def test_point_only_builds_stage1_alone_and_view_colour_adds_only_the_sh_rest():
+    """``neural.steps: 0`` (the point-only model) allocates stage 1's scene and nothing else, as the task builds;
+    ``neural.view_colour`` adds exactly stage 1's higher SH coefficients (3·((L+1)² − 1) channels) to the
+    stage-2 features and nothing else (the U-Net's input stays C + 1 channels)."""
+    _, entries = _entries("lego_splat_only.yaml")
+    assert {e.module.split(".")[0] for e in entries} == {"stage1_scene"}
+    _, on = _entries("lego.yaml", ["neural.view_colour=true", "geometry.sh_degree=3"])
+    _, off = _entries("lego.yaml", ["neural.view_colour=false", "geometry.sh_degree=3"])
+    feats = {name: [e for e in ents if e.module == "stage2.scene" and e.name == "_features"][0].shape
+             for name, ents in (("on", on), ("off", off))}
+    assert feats == {"on": (AT.N_PLACEHOLDER, 16 + 45), "off": (AT.N_PLACEHOLDER, 16)}
+    rest = {f"{e.module}.{e.name}": e.shape for e in on if e.module != "stage2.scene"}
+    assert rest == {f"{e.module}.{e.name}": e.shape for e in off if e.module != "stage2.scene"}
