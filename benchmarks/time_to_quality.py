@@ -94,6 +94,7 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     "s1-24ep+s2-250-f3": ("point-24ep", ["neural.steps=250", "neural.features=3", "neural.view_colour=false"]),
 }
 CONFIGS.update({"point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
+                "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})
 #: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
