@@ -153,7 +153,8 @@ def measure_gsplat(N: int, width: int, height: int, device: torch.device, reps: 
     quats = quat_from_frame(t0, t1, sc["normals"])
     scales = torch.cat([sc["scales"], torch.zeros_like(sc["scales"][:, :1])], dim=1)
     weights = torch.rand(1, height, width, 3, generator=torch.Generator().manual_seed(1)).to(device)
-    leaves = [t.clone().requires_grad_() for t in (sc["means"], quats, scales, sc["opacities"], sc["features"])]
+    # colors per camera ([C, N, 3]): gsplat 1.5.3's 2DGS path does not broadcast [N, 3] colours over cameras
+    leaves = [t.clone().requires_grad_() for t in (sc["means"], quats, scales, sc["opacities"], sc["features"][None])]
 
     def forward():
         return rasterization_2dgs(*leaves, V, K, width, height)[0]
@@ -206,8 +207,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--gsplat", choices=("auto", "off"), default="auto")
+    ap.add_argument("--sections", default="N,res,m,cpu,gsplat",
+                    help="comma-separated subset of N (sweep over N), res, m, cpu (CUDA vs CPU), gsplat")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "op_cuda.json"))
     args = ap.parse_args(argv)
+    sections = set(args.sections.split(","))
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         print("op_cuda: no CUDA device; run this on a GPU machine (or --device cpu --quick to test the script)")
@@ -239,79 +243,113 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
         return row
 
-    result["vs_N"] = [run("N", N, *base, 16) for N in n_sweep]
-    result["vs_resolution"] = [run("res", mid_n, W, H, 16) for W, H in res_sweep]
-    result["vs_samples"] = [run("m", mid_n, *base, m) for m in m_sweep]
-    result["slopes"] = dict(
-        time_vs_N=loglog_slope([r["N"] for r in result["vs_N"]], [r["total_ms"] for r in result["vs_N"]]),
-        time_vs_pixels=loglog_slope([r["pixels"] for r in result["vs_resolution"]],
-                                    [r["total_ms"] for r in result["vs_resolution"]]))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
 
-    # CUDA vs CPU at a small size (the CPU op on all cores of this machine).
+    def save() -> None:
+        """Writes what is measured so far (a run stopped at a time limit keeps its finished sections)."""
+        out.write_text(json.dumps(result, indent=2) + "\n")
+
+    result["vs_N"] = [run("N", N, *base, 16) for N in n_sweep] if "N" in sections else []
+    save()
+    result["vs_resolution"] = [run("res", mid_n, W, H, 16) for W, H in res_sweep] if "res" in sections else []
+    save()
+    result["vs_samples"] = [run("m", mid_n, *base, m) for m in m_sweep] if "m" in sections else []
+    result["slopes"] = {}
+    if len(result["vs_N"]) > 1:
+        result["slopes"]["time_vs_N"] = loglog_slope([r["N"] for r in result["vs_N"]],
+                                                     [r["total_ms"] for r in result["vs_N"]])
+    if len(result["vs_resolution"]) > 1:
+        result["slopes"]["time_vs_pixels"] = loglog_slope([r["pixels"] for r in result["vs_resolution"]],
+                                                          [r["total_ms"] for r in result["vs_resolution"]])
+    save()
+    if "cpu" in sections:
+        cpu_vs_device(result, cpu_case, device, args.reps)
+        save()
+    gs = measure_gsplat_rows(result, gs_sizes, base, device, args, run) if "gsplat" in sections else {"skipped": "not asked"}
+    result["gsplat_2dgs"] = gs
+    targets(result, gs)
+    save()
+    report(result, args, gs)
+    return 0
+
+
+def cpu_vs_device(result: dict, cpu_case: tuple[int, int, int, int], device: torch.device, reps: int) -> None:
+    """CUDA vs CPU at a small size (the CPU op on all cores of this machine)."""
     N, W, H, m = cpu_case
-    cpu_row = measure_nsplat(N, W, H, m, torch.device("cpu"), max(1, min(args.reps, 3)))
-    dev_row = measure_nsplat(N, W, H, m, device, args.reps)
+    cpu_row = measure_nsplat(N, W, H, m, torch.device("cpu"), max(1, min(reps, 3)))
+    dev_row = measure_nsplat(N, W, H, m, device, reps)
     result["cpu_vs_cuda"] = dict(case=dict(N=N, width=W, height=H, samples=m), cpu=cpu_row, device=dev_row,
                                  speedup_total=cpu_row["total_ms"] / dev_row["total_ms"],
                                  speedup_sampling=cpu_row["sample_ms"] / dev_row["sample_ms"])
     print(f"[cpu] {cpu_row['total_ms']:.1f} ms vs {dev_row['total_ms']:.1f} ms: "
           f"x{result['cpu_vs_cuda']['speedup_total']:.1f}", flush=True)
 
-    # gsplat 2DGS side by side.
+
+def measure_gsplat_rows(result: dict, gs_sizes: list[int], base: tuple[int, int], device: torch.device,
+                        args: argparse.Namespace, run) -> dict:
+    """gsplat 2DGS side by side with nsplat (m=16) at each N of ``gs_sizes``; the error when gsplat fails."""
     gs: dict = {}
     if args.gsplat == "off" or device.type != "cuda":
         gs["skipped"] = "disabled" if args.gsplat == "off" else "needs a CUDA device"
-    else:
-        try:
-            import gsplat
+        return gs
+    try:
+        import gsplat
 
-            gs["version"] = gsplat.__version__
-            t = time.perf_counter()
-            gs["rows"] = []
-            for N in gs_sizes:
-                g_row = measure_gsplat(N, *base, device, args.reps)
-                if not gs["rows"]:
-                    g_row["first_call_s_including_jit"] = time.perf_counter() - t
-                ours = next((r for r in result["vs_N"] if r["N"] == N), None) or run("gs-ref", N, *base, 16)
-                g_row["nsplat_total_ms_m16"] = ours["total_ms"]
-                g_row["nsplat_over_gsplat"] = ours["total_ms"] / g_row["total_ms"]
-                gs["rows"].append(g_row)
-                print(f"[gsplat] N={N}: {g_row['total_ms']:.1f} ms, nsplat/gsplat = {g_row['nsplat_over_gsplat']:.2f}",
-                      flush=True)
-        except Exception as exc:  # record why the comparison is missing instead of failing the benchmark
-            gs["error"] = f"{type(exc).__name__}: {exc}"
-            gs["traceback"] = traceback.format_exc(limit=3)
-            print(f"[gsplat] unavailable: {gs['error']}", flush=True)
-    result["gsplat_2dgs"] = gs
+        gs["version"] = gsplat.__version__
+        t = time.perf_counter()
+        gs["rows"] = []
+        for N in gs_sizes:
+            g_row = measure_gsplat(N, *base, device, args.reps)
+            if not gs["rows"]:
+                g_row["first_call_s_including_jit"] = time.perf_counter() - t
+            ours = next((r for r in result["vs_N"] if r["N"] == N), None) or run("gs-ref", N, *base, 16)
+            g_row["nsplat_total_ms_m16"] = ours["total_ms"]
+            g_row["nsplat_over_gsplat"] = ours["total_ms"] / g_row["total_ms"]
+            gs["rows"].append(g_row)
+            print(f"[gsplat] N={N}: {g_row['total_ms']:.1f} ms, nsplat/gsplat = {g_row['nsplat_over_gsplat']:.2f}",
+                  flush=True)
+    except Exception as exc:  # record why the comparison is missing instead of failing the benchmark
+        gs["error"] = f"{type(exc).__name__}: {exc}"
+        gs["traceback"] = traceback.format_exc(limit=6)
+        print(f"[gsplat] unavailable: {gs['error']}", flush=True)
+    return gs
 
-    # The issue's targets at 1M surfels, 512², m=16, one camera.
+
+def targets(result: dict, gs: dict) -> None:
+    """The issue's targets at 1M surfels, 512², m=16, one camera (where the sweeps measured them)."""
     target = next((r for r in result["vs_N"] if r["N"] == 1_000_000), None)
-    if target is not None:
-        t = dict(case="N=1M, 512², m=16", total_ms=target["total_ms"],
-                 slope_N=result["slopes"]["time_vs_N"], slope_pixels=result["slopes"]["time_vs_pixels"],
-                 slopes_ok=max(result["slopes"].values()) <= 1.1)
-        if "peak_over_pixels_samples_12B" in target:
-            t["peak_over_pixels_samples_12B"] = target["peak_over_pixels_samples_12B"]
-        g1 = next((r for r in gs.get("rows", []) if r["N"] == 1_000_000), None)
-        if g1 is not None:
-            t["nsplat_over_gsplat"] = g1["nsplat_over_gsplat"]
-            t["within_1_5x_of_gsplat"] = g1["nsplat_over_gsplat"] <= 1.5
-        result["targets"] = t
+    if target is None:
+        return
+    slopes = result["slopes"]
+    t = dict(case="N=1M, 512², m=16", total_ms=target["total_ms"], slope_N=slopes.get("time_vs_N"),
+             slope_pixels=slopes.get("time_vs_pixels"),
+             slopes_ok=max(slopes.values()) <= 1.1 if slopes else None)
+    if "peak_over_pixels_samples_12B" in target:
+        t["peak_over_pixels_samples_12B"] = target["peak_over_pixels_samples_12B"]
+    g1 = next((r for r in gs.get("rows", []) if r["N"] == 1_000_000), None)
+    if g1 is not None:
+        t["nsplat_over_gsplat"] = g1["nsplat_over_gsplat"]
+        t["within_1_5x_of_gsplat"] = g1["nsplat_over_gsplat"] <= 1.5
+    result["targets"] = t
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\n{result['device']}, torch {result['torch']}, median of {args.reps}; wrote {out}\n")
+
+def report(result: dict, args: argparse.Namespace, gs: dict) -> None:
+    """Prints the tables of whatever sections ran."""
+    print(f"\n{result['device']}, torch {result['torch']}, median of {args.reps}; wrote {args.out}\n")
     for name in ("vs_N", "vs_resolution", "vs_samples"):
-        print(f"### {name}\n\n{table(result[name], COLS)}\n")
-    print(f"log-log slope of fwd+bwd time: vs N {result['slopes']['time_vs_N']:.2f}, "
-          f"vs pixels {result['slopes']['time_vs_pixels']:.2f}")
-    c = result["cpu_vs_cuda"]
-    print(f"CPU ({result['cpu_threads']} threads) vs {args.device} at N={c['case']['N']}, "
-          f"{c['case']['width']}x{c['case']['height']}, m={c['case']['samples']}: "
-          f"{c['cpu']['total_ms']:.1f} ms vs {c['device']['total_ms']:.1f} ms fwd+bwd (x{c['speedup_total']:.1f})")
+        if result[name]:
+            print(f"### {name}\n\n{table(result[name], COLS)}\n")
+    for name, slope in result["slopes"].items():
+        print(f"log-log slope of fwd+bwd {name.replace('_', ' ')}: {slope:.2f}")
+    c = result.get("cpu_vs_cuda")
+    if c:
+        print(f"CPU ({result['cpu_threads']} threads) vs {args.device} at N={c['case']['N']}, "
+              f"{c['case']['width']}x{c['case']['height']}, m={c['case']['samples']}: "
+              f"{c['cpu']['total_ms']:.1f} ms vs {c['device']['total_ms']:.1f} ms fwd+bwd (x{c['speedup_total']:.1f})")
     if gs.get("rows"):
-        print(f"\n### gsplat 2DGS, {base[0]}x{base[1]}, same surfels\n")
+        base = gs["rows"][0]
+        print(f"\n### gsplat 2DGS, {base['width']}x{base['height']}, same surfels\n")
         print(table(gs["rows"], [("N", "N", ","), ("fwd_ms", "gsplat fwd ms", ".1f"),
                                  ("bwd_ms", "gsplat bwd ms", ".1f"),
                                  ("total_ms", "gsplat fwd+bwd ms", ".1f"), ("peak_extra_MB", "gsplat peak MB", ".0f"),
@@ -319,7 +357,6 @@ def main(argv: list[str] | None = None) -> int:
                                  ("nsplat_over_gsplat", "nsplat / gsplat", ".2f")]))
     else:
         print(f"gsplat 2DGS: {gs.get('error') or gs.get('skipped')}")
-    return 0
 
 
 if __name__ == "__main__":

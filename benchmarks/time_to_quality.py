@@ -88,12 +88,17 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     "s1-24ep+s2-500-vc": ("point-24ep", ["neural.steps=500", "neural.view_colour=true"]),
     "s1-48ep+s2-500": ("point-48ep", ["neural.steps=500", "neural.view_colour=false"]),
     "s1-48ep+s2-500-vc": ("point-48ep", ["neural.steps=500", "neural.view_colour=true"]),
+    "s1-48ep+s2-250-vc": ("point-48ep", ["neural.steps=250", "neural.view_colour=true"]),
     "point-24ep-eval": ("point-24ep", ["neural.steps=0"]),  # its surfels re-evaluated (eval.draws averaged)
     "s1-24ep+s2-250-lowlr": ("point-24ep", ["neural.steps=250", "neural.view_colour=false",
                                             "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
     "s1-24ep+s2-250-f3": ("point-24ep", ["neural.steps=250", "neural.features=3", "neural.view_colour=false"]),
 }
-CONFIGS.update({"point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
+#: "-noval" runs skip the stage-1 validation renders, as the shipped configs do: their time is that of the
+#: config's own training command (no curve, the held-out test at the end only).
+CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
+                "point-40ep-noval": POINT_ONLY + ["geometry.optim.epochs=40", "geometry.log.validate=0"],
+                "point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})

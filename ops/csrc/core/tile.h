@@ -183,19 +183,20 @@ NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double 
   return count;
 }
 
-// CPU layout of a tile's list (sample_pixel with scratch): near items first, then the far ones stably sorted
-// by tile_bin, so that every bin's far items are contiguous and in Morton order. Returns the near count.
-inline int arrange_tile_items(TileItem* items, int n, TileItem* tmp) {
+// Layout of a tile's list for the pixel pass: near items first, then the far ones stably sorted by
+// tile_bin, so that every bin's far items are contiguous and in Morton order. Copies `in` (tile_items' order)
+// to `out`; returns the near count.
+NS_HD int arrange_tile_items(const TileItem* in, int n, TileItem* out) {
   int near = 0;
-  int count[kBins + 1] = {0};
+  int count[kBins + 1];
+  for (int b = 0; b <= kBins; ++b) count[b] = 0;
   for (int i = 0; i < n; ++i) {
-    if (items[i].tile_bin < 0) tmp[near++] = items[i];
-    else ++count[items[i].tile_bin + 1];
+    if (in[i].tile_bin < 0) out[near++] = in[i];
+    else ++count[in[i].tile_bin + 1];
   }
   for (int b = 0; b < kBins; ++b) count[b + 1] += count[b];
   for (int i = 0; i < n; ++i)
-    if (items[i].tile_bin >= 0) tmp[near + count[items[i].tile_bin]++] = items[i];
-  for (int i = 0; i < n; ++i) items[i] = tmp[i];
+    if (in[i].tile_bin >= 0) out[near + count[in[i].tile_bin]++] = in[i];
   return near;
 }
 
@@ -216,108 +217,134 @@ NS_HD void visit_item(const TreeView& T, const TileItem& it, double u, double v,
   }
 }
 
-// The SPS sample of pixel (u, v) from its tile's items (see the file comment). Near items are binned by their
-// bound at the pixel, far items by their (larger) bound over the tile; a bin's near items are visited before
-// its far ones, each in Morton order. With `order` and `bins` scratch (n_near ints each) the items must be
-// arranged by arrange_tile_items (n_near its result) and the near ones are counting-sorted by bin once;
-// without scratch the items are in tile_items' order (n_near unused) and each bin is one sweep over them.
-// Both give the same visiting order. On return idx[0..cnt) holds original point ids, key[] is scratch.
+// Scratch of the pixel pass (sample_pixel's Sorted argument says which):
+//   Sorted: order, bins (n_near ints each): the near items are counting-sorted by bin once (CPU);
+//   !Sorted: bin8 (one byte per near item, bin8_stride bytes apart): each visited bin sweeps the near items'
+//     bytes (CUDA: a tile's pixels interleave their bytes, and a per-pixel int scratch would not fit).
+struct PixelScratch {
+  int* order;
+  int* bins;
+  uint8_t* bin8;
+  int64_t bin8_stride;
+};
+
+// One step of the pixel pass before visiting an item: stops the search (true) when the pending bound mass R
+// plus the pruned mass is below the floor or within the budget (see the file comment).
+NS_HD bool stop_before_item(PixelState& S, double R, double log_eps) {
+  const double pruned = S.log_pruned == -INFINITY ? 0.0 : fast_exp(S.log_pruned);
+  if (S.visited + pruned + R < kMinTotal) {  // Lambda is certainly below the floor: the pixel stays empty
+    S.log_pruned = log_add_exp(S.log_pruned, log(R));
+    S.pruned_est += 0.5 * R;
+    return true;
+  }
+  if (S.rest < INFINITY && pruned + R < S.budget) {  // linear pre-test; the log-domain test decides
+    const double lp = log_add_exp(S.log_pruned, log(R));
+    if (lp + S.rest < log_eps) {
+      S.log_pruned = lp;
+      S.pruned_est += 0.5 * R;
+      return true;
+    }
+  }
+  return false;
+}
+
+// The SPS sample of pixel (u, v) from its tile's items (see the file comment), arranged by
+// arrange_tile_items (n_near near items first). Near items are binned by their bound at the pixel, far items
+// by their (larger) bound over the tile; a bin's near items are visited before its far ones, each in Morton
+// order, whichever scratch is used (PixelScratch). On return idx[0..cnt) holds original point ids, key[] is
+// scratch.
 //
 // Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
 // the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
 // bound in it). This overestimates the pending mass by less than exp(kBinWidth), with exact integer counts
-// instead of running differences of floating-point sums.
+// instead of running differences of floating-point sums. The per-bin arrays are few (on a GPU they live in
+// local memory): the bin tops and the bins' first items are recomputed in the loop, bit for bit.
+template <bool Sorted>
 NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
-                              const Draw& draw, int m, double log_eps, double* key, int* idx, int* cnt, int* order,
-                              int* bins) {
+                              const Draw& draw, int m, double log_eps, double* key, int* idx, int* cnt,
+                              const PixelScratch& scratch) {
   PixelStats st{0.0, INFINITY, 0, 0, true};
   *cnt = 0;
-  int near[kBins + 1], far[kBins + 1];
-  for (int b = 0; b <= kBins; ++b) near[b] = far[b] = 0;
+  int near[kBins], far[kBins];
+  for (int b = 0; b < kBins; ++b) near[b] = far[b] = 0;
   double lb0 = -INFINITY;  // largest near bound (bin 0's top; far items are never in bin 0)
   int nb = 0;              // bins in use: every item is in a bin < nb
-  const int n_scan = order ? n_near : n;
-  for (int i = 0; i < n_scan; ++i) {
-    const int tb = items[i].tile_bin;
-    if (tb >= 0) {
-      ++far[tb];
-      nb = imax(nb, tb + 1);
-      continue;
-    }
+  for (int i = 0; i < n_near; ++i) {
     const double lb = item_log_bound(items[i], u, v);
     const int b = bound_bin(lb);
     lb0 = dmax(lb0, lb);
     ++near[b];
     nb = imax(nb, b + 1);
-    if (order) bins[i] = b;
+    if constexpr (Sorted) scratch.bins[i] = b;
+    else scratch.bin8[i * scratch.bin8_stride] = static_cast<uint8_t>(b);
   }
-  if (order)
-    for (int i = n_near; i < n; ++i) {
-      ++far[items[i].tile_bin];
-      nb = imax(nb, items[i].tile_bin + 1);
-    }
-  st.nodes = n_scan;
-  // top[b] >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products
-  double top[kBins], suffix[kBins + 1];
-  top[0] = fast_exp(lb0) * (1.0 + 1e-12);
-  double t = exp(kBinTop) * (1.0 + 1e-12);
+  for (int i = n_near; i < n; ++i) {
+    ++far[items[i].tile_bin];
+    nb = imax(nb, items[i].tile_bin + 1);
+  }
+  st.nodes = n_near;
+  // top_b >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products;
+  // suffix[b] = sum_{b' >= b} count_b' top_b' (filled with the tops first, then summed in place)
+  const double top0 = fast_exp(lb0) * (1.0 + 1e-12), top1 = exp(kBinTop) * (1.0 + 1e-12);
+  double suffix[kBins + 1];
+  double t = top1;
+  if (nb > 0) suffix[0] = top0;
   for (int b = 1; b < nb; ++b) {
     t *= kBinStep;
-    top[b] = t;
+    suffix[b] = t;
   }
   suffix[nb] = 0.0;
-  for (int b = nb - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * top[b];
+  for (int b = nb - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * suffix[b];
   if (suffix[0] < kMinTotal) {  // certainly below the floor
     st.exhaustive = n == 0;
     return st;
   }
-  // bin b's near items: order[near_at[b] .. near_at[b+1]); far items: items[far_at[b] .. far_at[b+1])
-  int near_at[kBins + 1], far_at[kBins + 1];
-  if (order) {
-    near_at[0] = 0;
-    far_at[0] = n_near;
-    for (int b = 0; b < nb; ++b) {
-      near_at[b + 1] = near_at[b] + near[b];
-      far_at[b + 1] = far_at[b] + far[b];
-    }
+  if constexpr (Sorted) {  // near items by bin: order[near_at_b .. near_at_b + near[b])
     int fill[kBins];
-    for (int b = 0; b < nb; ++b) fill[b] = near_at[b];
-    for (int i = 0; i < n_near; ++i) order[fill[bins[i]]++] = i;
+    for (int b = 0, at = 0; b < nb; ++b) {
+      fill[b] = at;
+      at += near[b];
+    }
+    for (int i = 0; i < n_near; ++i) scratch.order[fill[scratch.bins[i]]++] = i;
   }
   PixelState S = pixel_state(key, idx, m, log_eps);
   bool stopped = false;
+  int near_at = 0, far_at = n_near;  // bin b's first near item in `order` (Sorted), its first far item
+  t = top1;
   for (int b = 0; b < nb && !stopped; ++b) {
+    if (b > 0) t *= kBinStep;
+    const double top = b == 0 ? top0 : t, rest = suffix[b + 1];
     int left = near[b] + far[b];  // items of bin b not yet visited
-    for (int pass = 0; pass < 2 && left > 0 && !stopped; ++pass) {  // near items, then far ones
-      const int j0 = order ? (pass == 0 ? near_at[b] : far_at[b]) : 0;
-      const int j1 = order ? (pass == 0 ? near_at[b + 1] : far_at[b + 1]) : n;
-      for (int j = j0; j < j1; ++j) {
-        const int i = order && pass == 0 ? order[j] : j;
-        if (!order) {
-          const int tb = items[i].tile_bin;
-          if (pass == 0 ? (tb >= 0 || bound_bin(item_log_bound(items[i], u, v)) != b) : tb != b) continue;
+    // near items of bin b, in Morton order
+    if constexpr (Sorted) {
+      for (int j = near_at; j < near_at + near[b] && !stopped; ++j) {
+        stopped = stop_before_item(S, left * top + rest, log_eps);
+        if (!stopped) {
+          --left;
+          visit_item(T, items[scratch.order[j]], u, v, draw, S);
         }
-        const double R = left * top[b] + suffix[b + 1];  // pending bound mass
-        const double pruned = S.log_pruned == -INFINITY ? 0.0 : fast_exp(S.log_pruned);
-        if (S.visited + pruned + R < kMinTotal) {  // Lambda is certainly below the floor: the pixel stays empty
-          S.log_pruned = log_add_exp(S.log_pruned, log(R));
-          S.pruned_est += 0.5 * R;
-          stopped = true;
-          break;
+      }
+    } else {
+      for (int i = 0, found = 0; found < near[b] && !stopped; ++i) {
+        if (scratch.bin8[i * scratch.bin8_stride] != b) continue;
+        ++found;
+        stopped = stop_before_item(S, left * top + rest, log_eps);
+        if (!stopped) {
+          --left;
+          visit_item(T, items[i], u, v, draw, S);
         }
-        if (S.rest < INFINITY && pruned + R < S.budget) {  // linear pre-test; the log-domain test decides
-          const double lp = log_add_exp(S.log_pruned, log(R));
-          if (lp + S.rest < log_eps) {
-            S.log_pruned = lp;
-            S.pruned_est += 0.5 * R;
-            stopped = true;
-            break;
-          }
-        }
+      }
+    }
+    // then its far items
+    for (int i = far_at; i < far_at + far[b] && !stopped; ++i) {
+      stopped = stop_before_item(S, left * top + rest, log_eps);
+      if (!stopped) {
         --left;
         visit_item(T, items[i], u, v, draw, S);
       }
     }
+    near_at += near[b];
+    far_at += far[b];
   }
   *cnt = S.cnt;
   st.total = S.visited + S.pruned_est;

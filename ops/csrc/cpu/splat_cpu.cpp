@@ -175,7 +175,7 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
 #pragma omp parallel num_threads(nt)
     {
       std::vector<double> key(m);
-      std::vector<TileItem> items, tmp;
+      std::vector<TileItem> items, arranged;
       std::vector<int> order, bins;
 #pragma omp for schedule(dynamic, 1)
       for (int64_t t = 0; t < tiles_x * tiles_y; ++t) {
@@ -185,11 +185,12 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
         int tile_nodes = 0;
         const int n_items = tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, nullptr, nullptr);
         items.resize(std::max(n_items, 1));
-        tmp.resize(std::max(n_items, 1));
+        arranged.resize(std::max(n_items, 1));
         order.resize(std::max(n_items, 1));
         bins.resize(std::max(n_items, 1));
         tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, items.data(), &tile_nodes);
-        const int n_near = arrange_tile_items(items.data(), n_items, tmp.data());
+        const int n_near = arrange_tile_items(items.data(), n_items, arranged.data());
+        const PixelScratch scratch{order.data(), bins.data(), nullptr, 0};
         const int tile_share = static_cast<int>((tile_nodes + (x1 - x0) * (y1 - y0) - 1) / ((x1 - x0) * (y1 - y0)));
         for (int64_t py = y0; py < y1; ++py) {
           for (int64_t px = x0; px < x1; ++px) {
@@ -198,8 +199,8 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
             const Draw draw = pixel_draw(static_cast<uint64_t>(seed), b, p, width, stratified);
             int cnt = 0;
             int* idx = idx_b + p * m;
-            PixelStats st = sample_pixel(tv, items.data(), n_items, n_near, u, v, draw, static_cast<int>(m), log_eps,
-                                         key.data(), idx, &cnt, order.data(), bins.data());
+            PixelStats st = sample_pixel<true>(tv, arranged.data(), n_items, n_near, u, v, draw, static_cast<int>(m), log_eps,
+                                         key.data(), idx, &cnt, scratch);
             Ray ray = pixel_ray(K, u, v);
             finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.rest,
                            st.exhaustive && st.evaluated == cnt, inclusion, key.data(), idx, prob_b + p * m);

@@ -1,7 +1,8 @@
 // CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
-//   sample_cuda                     per camera: parallel tree build (Karras 2012), then one thread per pixel
+//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists, then one
+//                                   thread per pixel, a tile's pixels on consecutive threads
 //   composite_forward_cuda          one thread per (camera, pixel)
 //   composite_backward_pixels_cuda  pass 1, one thread per (camera, pixel)
 //   composite_backward_points_cuda  pass 2, one thread per point over its entries sorted by (point, camera)
@@ -10,7 +11,9 @@
 // math). No atomics in the outputs: results are deterministic run to run.
 //
 // Memory: the per-pixel heap lives in global memory (the `indices` output plus a double key scratch of
-// pixels x samples per camera), so `samples` is limited by memory only; all slot offsets are 64-bit.
+// pixels x samples per camera), so `samples` is limited by memory only; all slot offsets are 64-bit. The
+// tile items take sizeof(TileItem) (120 B) each, twice while they are arranged; the near items' per-pixel bins
+// one byte per (item, tile pixel), at most kBinScratchBytes per sampling launch.
 //
 // Only the CUDA runtime/cub headers and torch's ATen + c10/cuda headers are needed here (not ATen/cuda, which
 // pulls in cuBLAS/cuSPARSE headers): the Python binding lives in bindings.cpp, and this file compiles to an
@@ -52,6 +55,7 @@ constexpr int kThreads = 256;       // block size of the light kernels
 constexpr int kPixelThreads = 128;  // block size of the per-pixel traversal / compositing kernels
 constexpr int kReduceBlocks = 256;  // first-stage blocks of the bounding-box reduction
 constexpr int kFeatChunk = 8;       // channels accumulated in registers at once in pass 2
+constexpr int64_t kBinScratchBytes = int64_t(256) << 20;  // per-pixel item bins of one sampling launch
 
 // Blocks for a grid-stride loop over n elements (n > 0).
 unsigned int blocks_for(int64_t n, int threads) {
@@ -141,19 +145,24 @@ __global__ void box_partial_kernel(const S* __restrict__ mu, const S* __restrict
   part_cnt[t] = cnt;
 }
 
-// Stage 2: one thread per output value folds the partials into box[4] and count[1].
-__global__ void box_final_kernel(const double* __restrict__ part_box, const int64_t* __restrict__ part_cnt,
-                                 int64_t parts, double* __restrict__ box, int64_t* __restrict__ count) {
-  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (t < 4) {
-    double acc = t < 2 ? INFINITY : -INFINITY;
-    for (int64_t i = 0; i < parts; ++i)
-      acc = t < 2 ? cpu_min(acc, part_box[4 * i + t]) : cpu_max(acc, part_box[4 * i + t]);
-    box[t] = acc;
-  } else if (t == 4) {
-    int64_t cnt = 0;
-    for (int64_t i = 0; i < parts; ++i) cnt += part_cnt[i];
-    *count = cnt;
+// Stages 2 and 3: thread (c, j), c < 5, folds component c (4: the count) of the partials j, j + folds, ...
+// into fold j; folds = 1 gives the box and the count. Min/max and integer sums: the result does not depend
+// on the grouping.
+__global__ void box_fold_kernel(const double* __restrict__ part_box, const int64_t* __restrict__ part_cnt,
+                                int64_t parts, int64_t folds, double* __restrict__ out_box,
+                                int64_t* __restrict__ out_cnt) {
+  NS_GRID_STRIDE(t, 5 * folds) {
+    const int64_t c = t / folds, j = t % folds;
+    if (c < 4) {
+      double acc = c < 2 ? INFINITY : -INFINITY;
+      for (int64_t i = j; i < parts; i += folds)
+        acc = c < 2 ? cpu_min(acc, part_box[4 * i + c]) : cpu_max(acc, part_box[4 * i + c]);
+      out_box[4 * j + c] = acc;
+    } else {
+      int64_t cnt = 0;
+      for (int64_t i = j; i < parts; i += folds) cnt += part_cnt[i];
+      out_cnt[j] = cnt;
+    }
   }
 }
 
@@ -268,8 +277,13 @@ void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* s
   NS_LAUNCH(box_partial_kernel<S>, static_cast<unsigned int>(parts), kThreads, stream, mu, amp, N,
             part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-  NS_LAUNCH(box_final_kernel, 1, 32, stream, part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>(),
-            parts * kThreads, box.data_ptr<double>(), count.data_ptr<int64_t>());
+  at::Tensor mid_box = at::empty({kThreads, 4}, dbl), mid_cnt = at::empty({kThreads}, i64);
+  NS_LAUNCH(box_fold_kernel, blocks_for(5 * kThreads, kThreads), kThreads, stream, part_box.data_ptr<double>(),
+            part_cnt.data_ptr<int64_t>(), parts * kThreads, kThreads, mid_box.data_ptr<double>(),
+            mid_cnt.data_ptr<int64_t>());
+  NS_LAUNCH_CHECK();
+  NS_LAUNCH(box_fold_kernel, 1, 32, stream, mid_box.data_ptr<double>(), mid_cnt.data_ptr<int64_t>(), kThreads, 1,
+            box.data_ptr<double>(), count.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
 
   // 2. keys and their radix sort (all 64 bits; invalid points sort last).
@@ -368,39 +382,51 @@ __global__ void group_metric_kernel(TreeView tv, ItemMetric* __restrict__ metric
 }
 
 // Tile item lists (tile.h), one thread per tile: first the counts (items == nullptr), then, at the offsets'
-// exclusive scan, the items themselves.
+// exclusive scan, the items in tile_items' order into `raw` and arranged for the pixel pass into `items`
+// (arrange_tile_items), with each tile's near count in near_counts.
 __global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, int64_t tiles_x, int64_t tiles,
                                   double log_theta, double log_far, int64_t* __restrict__ counts,
-                                  const int64_t* __restrict__ offsets, TileItem* __restrict__ items) {
+                                  const int64_t* __restrict__ offsets, TileItem* __restrict__ raw,
+                                  TileItem* __restrict__ items, int* __restrict__ near_counts) {
   NS_GRID_STRIDE(t, tiles) {
     const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
     const int64_t x1 = x0 + kTileSize < width ? x0 + kTileSize : width;
     const int64_t y1 = y0 + kTileSize < height ? y0 + kTileSize : height;
     const int n = tile_items(tv, x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5, log_theta, log_far,
-                             items ? items + offsets[t] : nullptr, nullptr);
+                             raw ? raw + offsets[t] : nullptr, nullptr);
     if (counts) counts[t] = n;
+    if (raw) near_counts[t] = arrange_tile_items(raw + offsets[t], n, items + offsets[t]);
   }
 }
 
-// Sampling of camera b: the CPU tile loop body, one thread per pixel over its tile's items (no scratch: one
-// sweep per bin, the same visiting order as the CPU's sort); `key` is a pixels x m double scratch.
+constexpr int kTilePixels = kTileSize * kTileSize;
+
+// Sampling of camera b over tiles [t0, t1): the CPU tile loop body, kTilePixels consecutive threads per tile
+// (one per pixel, idle past the image's edge) so that a warp's threads read the same item lists. Near-item
+// bins go to `bin8` (PixelScratch), the tile's pixels' bytes interleaved: item i of tile t, pixel l at
+// bin8[(offsets[t] - offsets[t0] + i) * kTilePixels + l]. `key` is a pixels x m double scratch.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t P, int m,
+    sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
                   double log_eps, uint64_t seed, int64_t b, int inclusion, bool stratified,
-                  const TileItem* __restrict__ items, const int64_t* __restrict__ offsets, int64_t tiles_x,
-                  double* __restrict__ key_scratch, int* __restrict__ idx_b,
+                  const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
+                  const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
+                  uint8_t* __restrict__ bin8, double* __restrict__ key_scratch, int* __restrict__ idx_b,
                   S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
-  NS_GRID_STRIDE(p, P) {
-    const int64_t px = p % width, py = p / width;
+  NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
+    const int64_t t = t0 + g / kTilePixels;
+    const int l = static_cast<int>(g % kTilePixels);
+    const int64_t px = (t % tiles_x) * kTileSize + l % kTileSize, py = (t / tiles_x) * kTileSize + l / kTileSize;
+    if (px >= width || py >= height) continue;
+    const int64_t p = py * width + px;
     const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
     const Draw draw = pixel_draw(seed, b, p, width, stratified);
     int cnt = 0;
     int* idx = idx_b + p * m;
     double* key = key_scratch + p * m;
-    const int64_t t = (py / kTileSize) * tiles_x + px / kTileSize;
-    const PixelStats st = sample_pixel(tv, items + offsets[t], static_cast<int>(offsets[t + 1] - offsets[t]), 0, u,
-                                       v, draw, m, log_eps, key, idx, &cnt, nullptr, nullptr);
+    const PixelScratch scratch{nullptr, nullptr, bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l, kTilePixels};
+    const PixelStats st = sample_pixel<false>(tv, items + offsets[t], static_cast<int>(offsets[t + 1] - offsets[t]),
+                                       near_counts[t], u, v, draw, m, log_eps, key, idx, &cnt, scratch);
     const Ray ray = pixel_ray(K, u, v);
     finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt, inclusion, key, idx,
                    prob_b + p * m);
@@ -555,20 +581,38 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       at::Tensor counts = at::zeros({tiles + 1}, opts.dtype(at::kLong));
       at::Tensor offsets = at::empty({tiles + 1}, opts.dtype(at::kLong));
       NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                log_theta, log_far, counts.data_ptr<int64_t>(), nullptr, nullptr);
+                log_theta, log_far, counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
       NS_LAUNCH_CHECK();
       exclusive_sum(counts.data_ptr<int64_t>(), offsets.data_ptr<int64_t>(), tiles + 1, opts, stream);
-      const int64_t n_items = offsets[tiles].item<int64_t>();  // synchronises
+      const at::Tensor offsets_host = offsets.to(at::kCPU);  // synchronises
+      const int64_t* off_h = offsets_host.data_ptr<int64_t>();
+      const int64_t n_items = off_h[tiles];
       at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-      NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                log_theta, log_far, nullptr, offsets.data_ptr<int64_t>(), as<TileItem>(items));
-      NS_LAUNCH_CHECK();
-      NS_LAUNCH(sample_kernel<S>, blocks_for(P, kPixelThreads), kPixelThreads, stream,
-          tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, P, static_cast<int>(m), log_eps,
-          static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, as<TileItem>(items),
-          offsets.data_ptr<int64_t>(), tiles_x, key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m,
-          probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
-      NS_LAUNCH_CHECK();
+      at::Tensor near_counts = at::empty({tiles}, opts.dtype(at::kInt));
+      {
+        at::Tensor raw = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
+        NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
+                  log_theta, log_far, nullptr, offsets.data_ptr<int64_t>(), as<TileItem>(raw), as<TileItem>(items),
+                  near_counts.data_ptr<int>());
+        NS_LAUNCH_CHECK();
+      }
+      // pixel pass in chunks of whole tiles whose bin bytes fit in kBinScratchBytes (a tile larger than that
+      // is a chunk of its own)
+      const int64_t chunk_items = std::max<int64_t>(kBinScratchBytes / kTilePixels, 1);
+      at::Tensor bin8 = bytes(std::min(n_items, chunk_items) * kTilePixels, opts);
+      for (int64_t t0 = 0; t0 < tiles;) {
+        int64_t t1 = t0 + 1;
+        while (t1 < tiles && off_h[t1 + 1] - off_h[t0] <= chunk_items) ++t1;
+        if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
+        NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
+            tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, static_cast<int>(m), log_eps,
+            static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, as<TileItem>(items),
+            offsets.data_ptr<int64_t>(), near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8),
+            key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m, probs.data_ptr<S>() + b * P * m,
+            total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
+        NS_LAUNCH_CHECK();
+        t0 = t1;
+      }
       // The tree's tensors go back to the caching allocator here, in stream order.
     }
   });

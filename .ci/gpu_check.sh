@@ -1,0 +1,114 @@
+#!/usr/bin/env bash
+# Everything that needs a GPU, in one call (a lent GPU machine is short-lived and starts bare):
+#   1. builds the CPU and CUDA backends (and, in the background, gsplat's JIT extension when gsplat imports);
+#   2. tests/test_op_cuda.py's GPU tests (-m cuda), while compute-sanitizer memcheck runs every kernel path of
+#      tests/cuda_sanitizer_case.py, then racecheck on one small scene;
+#   3. benchmarks/op_cuda.py (with gsplat's 2DGS rasteriser when its build succeeded), alone on the machine.
+#   4. (GPU_CHECK_STAGES: "profile") per-kernel GPU time (benchmarks/op_cuda_profile.py);
+#   5. (GPU_CHECK_STAGES: "train") the README's main job on the GPU (`python train.py --device cuda`);
+#   6. (GPU_CHECK_STAGES: "ncu") Nsight Compute sections of one sample_kernel launch (N=1M, 512², m=16).
+# GPU_CHECK_STAGES picks stages (default "tests bench"; also "profile", "train", "ncu"); GPU_CHECK_BENCH_ARGS are
+# extra arguments of the benchmark (e.g. "--sections gsplat").
+# Writes gpu_check.log, pytest_cuda.log, gsplat_build.log, op_cuda.json, op_cuda_profile.json and
+# main_job_metrics.json, ncu.txt into $OUT (default: a temp dir).
+# No installation: the repository root goes on PYTHONPATH (nsplat/ops -> ops, nsplat/models -> models are
+# linked as the installed package maps them); wheels in .whl/ (plyfile, gsplat) go to /tmp/site.
+# GPU_CHECK_BUDGET_S (default 420) bounds the whole script; later stages get what is left.
+# Usage: bash .ci/gpu_check.sh
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-$(mktemp -d)}
+BUDGET=${GPU_CHECK_BUDGET_S:-420}
+STAGES=" ${GPU_CHECK_STAGES:-tests bench} "
+has() { [[ "$STAGES" == *" $1 "* ]]; }
+T0=$SECONDS
+left() { echo $((BUDGET - (SECONDS - T0))); }
+upto() { local s=$(($(left) - $1)); [ "$s" -lt 30 ] && s=30; echo "$s"; }  # what is left minus $1 s, >= 30
+exec > >(tee -a "$OUT/gpu_check.log") 2>&1
+export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+export NSPLAT_BUILD_DIR=${NSPLAT_BUILD_DIR:-$PWD/.nsplat_build}
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+  export PYTHONPATH=/tmp/site
+fi
+for sub in ops models; do [ -e "nsplat/$sub" ] || ln -s "../$sub" "nsplat/$sub"; done
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+
+echo "== device"
+nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv
+python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name())"
+nproc
+
+GS_PID=
+if has bench && python3 -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('gsplat') is None)"; then
+  echo "== gsplat JIT build (background, at most 240 s)"
+  (MAX_JOBS=10 timeout 240 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built:', _C is not None)" \
+    >"$OUT/gsplat_build.log" 2>&1; echo "gsplat build rc=$?" >>"$OUT/gsplat_build.log") &
+  GS_PID=$!
+fi
+
+echo "== build the nsplat backends ($(left) s left)"
+t=$SECONDS
+python3 -c "import torch; from nsplat.ops.build import backend; backend(torch.device('cpu'))" &
+CPU_PID=$!
+python3 -c "import torch; from nsplat.ops.build import backend; print(backend(torch.device('cuda')).__file__)"
+echo "cuda build rc=$?"
+wait "$CPU_PID"
+echo "cpu build rc=$? (both built in $((SECONDS - t)) s)"
+
+if has tests; then
+  echo "== GPU tests + memcheck ($(left) s left)"
+  PT_OPTS=()
+  python3 -c "import xdist" 2>/dev/null && PT_OPTS+=(-n 4)
+  python3 -c "import pytest_timeout" 2>/dev/null && PT_OPTS+=(--timeout 150)
+  SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer /usr/local/cuda*/compute-sanitizer/compute-sanitizer 2>/dev/null | head -1)
+  echo "pytest options: ${PT_OPTS[*]:-none}; sanitizer: ${SAN:-not found}"
+  t=$SECONDS
+  timeout "$(upto 150)" python3 -m pytest -m cuda tests/test_op_cuda.py -q -p no:cacheprovider "${PT_OPTS[@]}" \
+    >"$OUT/pytest_cuda.log" 2>&1 &
+  PT_PID=$!
+  timeout 150 "${SAN:-compute-sanitizer}" --tool memcheck --error-exitcode 9 python3 tests/cuda_sanitizer_case.py all
+  echo "memcheck rc=$? ($((SECONDS - t)) s)"
+  t2=$SECONDS
+  timeout 120 "${SAN:-compute-sanitizer}" --tool racecheck --error-exitcode 9 python3 tests/cuda_sanitizer_case.py one
+  echo "racecheck rc=$? ($((SECONDS - t2)) s)"
+  wait "$PT_PID"
+  echo "pytest rc=$? ($((SECONDS - t)) s)"
+  tail -40 "$OUT/pytest_cuda.log"
+
+fi
+
+GSPLAT=off
+if [ -n "$GS_PID" ]; then
+  wait "$GS_PID"
+  pkill -f ninja; pkill -f cicc; pkill -f ptxas
+  cat "$OUT/gsplat_build.log" | tail -5
+  grep -q "gsplat built: True" "$OUT/gsplat_build.log" && GSPLAT=auto
+fi
+if has profile; then
+  echo "== per-kernel profile ($(left) s left)"
+  timeout 90 python3 benchmarks/op_cuda_profile.py --sizes 10000,1000000 --out "$OUT/op_cuda_profile.json"
+  echo "profile rc=$?"
+fi
+if has bench; then
+  echo "== benchmark, gsplat $GSPLAT ($(left) s left)"
+  # shellcheck disable=SC2086  # GPU_CHECK_BENCH_ARGS is a list of arguments
+  timeout "$(upto "$(has ncu && echo 60 || echo 5)")" python3 benchmarks/op_cuda.py --gsplat "$GSPLAT" --out "$OUT/op_cuda.json" ${GPU_CHECK_BENCH_ARGS:-}
+  echo "benchmark rc=$?"
+fi
+if has ncu; then
+  echo "== Nsight Compute on the first sample_kernel launch, N=1M ($(left) s left)"
+  timeout "$(upto 5)" ncu --clock-control none -k regex:sample_kernel -c 1 --section SpeedOfLight --section Occupancy \
+    --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats \
+    python3 benchmarks/op_cuda_profile.py --sizes 1000000 --reps 1 >"$OUT/ncu.txt" 2>&1
+  echo "ncu rc=$?"
+  grep -E "Duration|Registers|Local|Achieved Occupancy|Theoretical Occupancy|Memory Throughput|Compute \(SM\)|Stall" "$OUT/ncu.txt" | head -30
+fi
+if has train; then
+  echo "== main job on the GPU ($(left) s left)"
+  t=$SECONDS
+  timeout "$(upto 5)" python3 train.py --device cuda --run /tmp/gpu_main_job --overwrite log.progress=false
+  echo "main job rc=$? ($((SECONDS - t)) s)"
+  cp /tmp/gpu_main_job/eval_test/metrics.json "$OUT/main_job_metrics.json" 2>/dev/null
+fi
+echo "total $((SECONDS - T0)) s"
