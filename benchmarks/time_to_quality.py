@@ -98,6 +98,11 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
 #: config's own training command (no curve, the held-out test at the end only).
 CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                 "point-40ep-noval": POINT_ONLY + ["geometry.optim.epochs=40", "geometry.log.validate=0"],
+                # the rate halved 7 or 4 times instead of 5 over the 36 epochs
+                "point-36ep-d7-noval": POINT_ONLY + ["geometry.optim.epochs=36", "geometry.optim.lr_decays=7",
+                                                     "geometry.log.validate=0"],
+                "point-36ep-d4-noval": POINT_ONLY + ["geometry.optim.epochs=36", "geometry.optim.lr_decays=4",
+                                                     "geometry.log.validate=0"],
                 "point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})

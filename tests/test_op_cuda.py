@@ -330,11 +330,14 @@ def test_slot_offsets_beyond_2_31():
 @pytest.fixture(scope="module")
 def emulated():
     """splat_cuda.cu built by the host compiler in its emulation mode, cached like the real backends (the
-    source-hash define makes it rebuild when any native source or core header changes)."""
+    source-hash define makes it rebuild when any native source or core header changes). Its sampling launches
+    hold at most 4 KiB of per-pixel bins (256 tile items) instead of 256 MB, so every scene below is sampled
+    in several launches, some of them one tile with more items than that."""
     from torch.utils.cpp_extension import load
 
     sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "emulate.cpp")]
-    flags = ["-O3", "-std=c++17", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}"]
+    flags = ["-O3", "-std=c++17", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}",
+             "-DNSPLAT_BIN_SCRATCH_BYTES=4096"]
     return load(name="nsplat_cuda_emu", sources=sources, extra_cflags=flags, extra_include_paths=[str(CSRC)],
                 build_directory=str(build_dir("cuda_emu")), verbose=False)
 

@@ -55,7 +55,12 @@ constexpr int kThreads = 256;       // block size of the light kernels
 constexpr int kPixelThreads = 128;  // block size of the per-pixel traversal / compositing kernels
 constexpr int kReduceBlocks = 256;  // first-stage blocks of the bounding-box reduction
 constexpr int kFeatChunk = 8;       // channels accumulated in registers at once in pass 2
-constexpr int64_t kBinScratchBytes = int64_t(256) << 20;  // per-pixel item bins of one sampling launch
+// Per-pixel item bins of one sampling launch; a build may lower it (the host-emulation tests use 4 KiB, so
+// that their scenes take several launches, some of a single tile larger than the limit).
+#ifndef NSPLAT_BIN_SCRATCH_BYTES
+#define NSPLAT_BIN_SCRATCH_BYTES (int64_t(256) << 20)
+#endif
+constexpr int64_t kBinScratchBytes = NSPLAT_BIN_SCRATCH_BYTES;
 
 // Blocks for a grid-stride loop over n elements (n > 0).
 unsigned int blocks_for(int64_t n, int threads) {
