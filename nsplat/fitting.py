@@ -130,6 +130,10 @@ class FitConfig:
             0.2); 0 (default): L1 alone.
         sh_rest_lr: with ``shading: sh``, the SH coefficients beyond the mean colour (feature channels
             ``3:``) step at this fraction (in (0, 1]) of the features' rate (3DGS: 1/20); 1 (default): the same.
+        coarse_epochs: the first this many epochs fit the views at ``1/coarse_factor`` of their resolution
+            (:meth:`~nsplat.data.views.PosedViews.downscaled`: block means, scaled intrinsics; the low-pass
+            stays in pixels of the image rendered), a coarse-to-fine schedule that makes early steps cheaper;
+            repositioning and validation use the full resolution. 0 (default): off.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
@@ -151,6 +155,8 @@ class FitConfig:
     mask_weight: float = 0.0
     ssim_weight: float = 0.0
     sh_rest_lr: float = 1.0
+    coarse_epochs: int = 0
+    coarse_factor: int = 2
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -159,7 +165,7 @@ class FitConfig:
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
                        reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit",
-                       sh_rest_lr="prob")
+                       sh_rest_lr="prob", coarse_epochs=">=0", coarse_factor=">=1")
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -201,6 +207,10 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     masks = views.masks
     if cfg.mask_weight > 0 and masks is None:
         raise ConfigError("mask_weight: > 0 needs views with masks (RGBA images); these views have none")
+    try:
+        coarse = views.downscaled(cfg.coarse_factor) if cfg.coarse_epochs > 0 else views
+    except ValueError as exc:
+        raise ConfigError(f"coarse_factor: {exc}") from exc
     payload = latest_payload(Path(run_dir), resume)
     rows = checkpoint_rows(payload, "scene", "_means")
     if rows is not None and rows != scene.num_points:  # densified before the checkpoint
@@ -214,6 +224,8 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
 
     def step(k: int) -> dict[str, float]:
         epoch, s = divmod(k, steps_per_epoch)
+        src = coarse if epoch < cfg.coarse_epochs else views  # the coarse-to-fine schedule
+        w, h = src.width, src.height
         perm = torch.randperm(V, generator=generator(seed, "batches", epoch))
         idx = perm[s * cfg.batch:(s + 1) * cfg.batch]
         optimizer.zero_grad(set_to_none=True)
@@ -223,15 +235,16 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         # each rank rendering its share of the batch's slots j; a view's seed is its global slot's).
         for j in distributed.shard(idx.numel()):
             v = int(idx[j])
-            img, alpha = render_views(scene, viewmats[v:v + 1], Ks[v:v + 1], W, H, render_cfg,
+            img, alpha = render_views(scene, viewmats[v:v + 1], src.Ks[v:v + 1], w, h, render_cfg,
                                       seed=op_seed(seed, "fit", k * cfg.batch + j), shading=cfg.shading,
                                       background=background, with_alpha=True)
-            loss = (img - images[v:v + 1]).abs().mean()
+            target = src.images[v:v + 1]
+            loss = (img - target).abs().mean()
             if cfg.ssim_weight > 0:
-                dssim = dssim_loss(img.permute(0, 3, 1, 2), images[v:v + 1].permute(0, 3, 1, 2))
+                dssim = dssim_loss(img.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2))
                 loss = (1.0 - cfg.ssim_weight) * loss + cfg.ssim_weight * dssim
             if cfg.mask_weight > 0:
-                loss = loss + cfg.mask_weight * (alpha[..., 0] - masks[v:v + 1].float()).abs().mean()
+                loss = loss + cfg.mask_weight * (alpha[..., 0] - src.masks[v:v + 1].float()).abs().mean()
             loss = loss / idx.numel()
             means = scene.tensor("means")
             before = None if local is None or means.grad is None else means.grad.clone()
@@ -239,7 +252,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
             loss_val += loss.item()
             if local is not None:  # this view's gradient of its own (pixel-mean) loss
                 g = means.grad if before is None else means.grad - before
-                local.observe(g * idx.numel(), means.detach(), viewmats[v], Ks[v], W * H)
+                local.observe(g * idx.numel(), means.detach(), viewmats[v], src.Ks[v], w * h)
         distributed.all_reduce_grads(optimizer)
         if stats is not None:  # every rank holds the whole batch's statistics (and checkpoints them)
             stats.add_(distributed.all_reduce_sum(local.grad), distributed.all_reduce_sum(local.views))
