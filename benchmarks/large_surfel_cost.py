@@ -1,0 +1,88 @@
+"""What the few largest surfels cost the sampler (issue 28: why stage-1 steps slow down as a fit converges).
+
+For each fitted scene (a neural run's ``geometry.ply``) renders 10 training views (every 6th) with the op, after
+one warm-up render, keeping every surfel or only those whose larger tangent std is below each ``--caps``
+value (world units), and reports the render time per view and the sampler's exact kernel evaluations per
+pixel (the op's ``work``).
+
+    python benchmarks/large_surfel_cost.py runs/ttq/lego/point-42ep-norepo-s0/geometry.ply \\
+        runs/ttq/lego/point-54ep-norepo-s0/geometry.ply runs/ttq/lego/point-54ep-norepo-s1/geometry.ply
+
+Prints a table and writes ``benchmarks/results/large_surfel_cost.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def measure(ply: str, config: str, caps: list[float]) -> list[dict]:
+    from nsplat.config import load_config, read_yaml
+    from nsplat.render import render
+    from nsplat.scene import SurfelScene
+    from nsplat.sh import view_colour
+    from nsplat.tasks.neural import load_views
+    from nsplat.tasks.neural_config import Config
+    from nsplat.tasks.neural_init import geometry_scene_config
+
+    cfg = load_config(Config, read_yaml(config), [])
+    views = load_views(cfg, "train", torch.device("cpu"))
+    scene = SurfelScene.load_ply(ply, geometry_scene_config(cfg))
+    largest = scene.scales.detach().max(1).values
+    median = float(largest.median())
+    rows = []
+    with torch.no_grad():
+        for cap in [float("inf"), *caps]:
+            keep = largest < cap
+            means, feats = scene.means[keep], scene.features[keep]
+            args = (scene.normals[keep], scene.scales[keep], scene.opacities[keep])
+
+            def one(v: int) -> torch.Tensor:
+                f = view_colour(feats, means, views.viewmats[v])
+                return render(means, *args, f, views.viewmats[v:v + 1], views.Ks[v:v + 1], views.width,
+                              views.height, cfg.render, seed=v).work
+
+            one(0)  # warm-up
+            seconds, work = 0.0, 0.0
+            picked = range(0, len(views), max(1, len(views) // 10))
+            for v in picked:
+                t0 = time.perf_counter()
+                w = one(v)
+                seconds += time.perf_counter() - t0
+                work += float(w.float().mean())
+            rows.append({"ply": ply, "cap": cap, "cap_over_median": cap / median, "kept": int(keep.sum()),
+                         "removed": int((~keep).sum()), "ms_per_view": 1000.0 * seconds / len(picked),
+                         "work_per_pixel": work / len(picked)})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("plys", nargs="+")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "lego.yaml"))
+    ap.add_argument("--caps", type=float, nargs="+", default=[0.05, 0.03, 0.02])
+    args = ap.parse_args()
+    rows = [r for ply in args.plys for r in measure(ply, args.config, args.caps)]
+    print("| scene | kept if largest std < | surfels removed | render ms / view | kernel evaluations / pixel |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        cap = "all kept" if r["cap"] == float("inf") else f"{r['cap']:g} ({r['cap_over_median']:.1f}× median)"
+        print(f"| {Path(r['ply']).parent.name} | {cap} | {r['removed']} | {r['ms_per_view']:.0f} | "
+              f"{r['work_per_pixel']:.1f} |")
+    out = ROOT / "benchmarks" / "results" / "large_surfel_cost.json"
+    out.write_text(json.dumps({"meta": {"threads": torch.get_num_threads(), "load": os.getloadavg(),
+                                        "config": args.config}, "rows": rows}, indent=1, default=str))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
