@@ -90,8 +90,7 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     "s1-48ep+s2-500-vc": ("point-48ep", ["neural.steps=500", "neural.view_colour=true"]),
     "s1-48ep+s2-250-vc": ("point-48ep", ["neural.steps=250", "neural.view_colour=true"]),
     **{f"s1-{s1}+s2-{n}-vc": (f"point-{s1}", [f"neural.steps={n}", "neural.view_colour=true"])
-       for s1 in ("48ep-norepo", "54ep-norepo", "56ep-norepo", "64ep-norepo", "72ep-norepo", "84ep-norepo", "48ep-norepo-c24", "56ep-norepo-c24",
-                  "64ep-norepo-c32") for n in (250, 300, 400, 500)},
+       for s1 in ("48ep-norepo", "54ep-norepo", "72ep-norepo") for n in (250, 500)},
     # cheaper stage-2 steps for the 25-minute budget: one view per step, or fewer steps
     "s1-54ep-norepo+s2-250-vc-b1": ("point-54ep-norepo", ["neural.steps=250", "neural.view_colour=true",
                                                           "neural.batch=1"]),
@@ -101,6 +100,8 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
                                             "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
     "s1-24ep+s2-250-f3": ("point-24ep", ["neural.steps=250", "neural.features=3", "neural.view_colour=false"]),
 }
+#: Stage 1 without validation renders and without repositioning checks (session 5's lego runs).
+NOREPO = ["geometry.log.validate=0", "geometry.optim.reposition=false"]
 #: "-noval" runs skip the stage-1 validation renders, as the shipped configs do: their time is that of the
 #: config's own training command (no curve, the held-out test at the end only).
 CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
@@ -112,14 +113,12 @@ CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                                                      "geometry.log.validate=0"],
                 "point-24ep": POINT_ONLY + ["geometry.optim.epochs=24"],
                 # session 5: no repositioning checks (on lego they moved 0-7 of 78 496 points per run
-                # and cost 13-17 s each, one every 4 epochs)
-                **{f"point-{e}ep-norepo": POINT_ONLY + [f"geometry.optim.epochs={e}", "geometry.log.validate=0",
-                                                       "geometry.optim.reposition=false"] for e in (40, 42, 44, 48, 54, 56, 64, 72, 84)},
-                # coarse-to-fine: the first c epochs at 100x100 (geometry.optim.coarse_epochs, factor 2)
-                **{f"point-{e}ep-norepo-c{c}": POINT_ONLY + [f"geometry.optim.epochs={e}", "geometry.log.validate=0",
-                                                            "geometry.optim.reposition=false",
-                                                            f"geometry.optim.coarse_epochs={c}"]
-                   for e, c in ((40, 16), (40, 24), (48, 24), (56, 24), (64, 32))},
+                # and cost 13-17 s each, one every 4 epochs); "-c<C>": the first C epochs at 100x100
+                **{f"point-{e}ep-norepo": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}"]
+                   for e in (40, 42, 48, 54, 72)},
+                **{f"point-{e}ep-norepo-c{c}": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}",
+                                                                     f"geometry.optim.coarse_epochs={c}"]
+                   for e, c in ((40, 16), (48, 24))},
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})
