@@ -95,6 +95,9 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     "s1-54ep-norepo+s2-250-vc-b1": ("point-54ep-norepo", ["neural.steps=250", "neural.view_colour=true",
                                                           "neural.batch=1"]),
     "s1-54ep-norepo+s2-160-vc": ("point-54ep-norepo", ["neural.steps=160", "neural.view_colour=true"]),
+    **{f"s1-{s1}-op6+s2-{n}-vc{b}": (f"point-{s1}-op6", [f"neural.steps={n}", "neural.view_colour=true",
+                                                         *(["neural.batch=1"] if b else [])])
+       for s1 in ("54ep-norepo", "66ep-norepo", "72ep-norepo") for n in (250, 500) for b in ("", "-b1")},
     "point-24ep-eval": ("point-24ep", ["neural.steps=0"]),  # its surfels re-evaluated (eval.draws averaged)
     "s1-24ep+s2-250-lowlr": ("point-24ep", ["neural.steps=250", "neural.view_colour=false",
                                             "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
@@ -119,6 +122,13 @@ CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                 **{f"point-{e}ep-norepo-c{c}": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}",
                                                                      f"geometry.optim.coarse_epochs={c}"]
                    for e, c in ((40, 16), (48, 24))},
+                # session 6: every tangent std-dev capped (world units; the fitted median is 0.0065)
+                **{f"point-{e}ep-norepo-cap{c}": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}",
+                                                                       f"geometry.optim.max_scale=0.{c}"]
+                   for e in (54, 60, 66, 72) for c in ("05", "03", "02")},
+                # the same overrides run with the session-6 op (scale classes lead the tree's sort key)
+                **{f"point-{e}ep-norepo-op6": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}"]
+                   for e in (54, 66, 72)},
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})

@@ -102,6 +102,14 @@ def reposition(scene: SurfelScene, contributions: torch.Tensor, min_weight: floa
     return int(dead.numel())
 
 
+@torch.no_grad()
+def cap_scales(scene: SurfelScene, max_scale: float) -> None:
+    """Clamp every per-point tangent std-dev of ``scene`` to at most ``max_scale`` (world units) in place;
+    ``0``: nothing happens."""
+    if max_scale > 0:
+        scene.tensor("scales").clamp_(max=math.log(max_scale))
+
+
 #: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
 PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
 
@@ -134,6 +142,10 @@ class FitConfig:
             (:meth:`~nsplat.data.views.PosedViews.downscaled`: block means, scaled intrinsics; the low-pass
             stays in pixels of the image rendered), a coarse-to-fine schedule that makes early steps cheaper;
             repositioning and validation use the full resolution. 0 (default): off.
+        max_scale: cap on every tangent std-dev (world units), enforced after each step by clamping the
+            log-scales (a projection; Adam's moments are left as they are). A few surfels that grow far beyond
+            their neighbours make the sampler's tree bounds loose wherever they reach, which slows every
+            render (docs/results.md, "Time to quality", session 6); needs per-point scales. 0 (default): no cap.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
@@ -157,6 +169,7 @@ class FitConfig:
     sh_rest_lr: float = 1.0
     coarse_epochs: int = 0
     coarse_factor: int = 2
+    max_scale: float = 0.0
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
@@ -165,7 +178,8 @@ class FitConfig:
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
                        reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit",
-                       sh_rest_lr="prob", coarse_epochs=">=0", coarse_factor=">=1")
+                       sh_rest_lr="prob", coarse_epochs=">=0", coarse_factor=">=1",
+                       max_scale=">=0")
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -207,6 +221,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     masks = views.masks
     if cfg.mask_weight > 0 and masks is None:
         raise ConfigError("mask_weight: > 0 needs views with masks (RGBA images); these views have none")
+    if cfg.max_scale > 0 and scene.cfg.scale is not None:
+        raise ConfigError(f"max_scale: needs per-point scales (scene.scale: null); this scene's std-dev is the "
+                          f"constant {scene.cfg.scale}")
     try:
         coarse = views.downscaled(cfg.coarse_factor) if cfg.coarse_epochs > 0 else views
     except ValueError as exc:
@@ -221,6 +238,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     steps_per_epoch = math.ceil(V / cfg.batch)
     engine = Engine(Path(run_dir), log or LogConfig(), cfg.epochs * steps_per_epoch, desc=desc)
     start = engine.resume(t, payload)
+    cap_scales(scene, cfg.max_scale)
 
     def step(k: int) -> dict[str, float]:
         epoch, s = divmod(k, steps_per_epoch)
@@ -263,6 +281,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         if rest is not None:  # old + sh_rest_lr · (Adam's step): the higher bands move at the smaller rate
             with torch.no_grad():
                 scene.tensor("features")[:, 3:].lerp_(rest, 1.0 - cfg.sh_rest_lr)
+        cap_scales(scene, cfg.max_scale)
         out = distributed.all_reduce_scalars({"train/loss": loss_val})
         if s + 1 == steps_per_epoch:
             moved = 0

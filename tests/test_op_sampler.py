@@ -22,10 +22,12 @@ def _setup(N: int, seed: int, B: int = 2, dtype=torch.float32, **kw):
     return sc, V, K, proj
 
 
-@pytest.mark.parametrize("N,m,eps", [(60, 5, 0.01), (200, 16, 0.05), (40, 1, 0.01), (150, 40, 0.001)])
-def test_sample_equals_bruteforce_sps(N, m, eps):
-    """(a) The tree sample equals exact SPS with the same RNG except on at most ~ε of the pixels."""
-    _, _, K, proj = _setup(N, seed=N + m)
+@pytest.mark.parametrize("N,m,eps,scale", [(60, 5, 0.01, None), (200, 16, 0.05, None), (40, 1, 0.01, None),
+                                           (150, 40, 0.001, None), (150, 16, 0.01, (0.04, 4.0))])
+def test_sample_equals_bruteforce_sps(N, m, eps, scale):
+    """(a) The tree sample equals exact SPS with the same RNG except on at most ~ε of the pixels; the last case
+    spans every scale class of the tree's sort key (std-devs from ~1 to ~45 px)."""
+    _, _, K, proj = _setup(N, seed=N + m, **({} if scale is None else {"scale": scale}))
     mismatched = compared = 0
     for seed in range(3):
         idx, _, _, _ = sample(proj, K, W, H, samples=m, eps=eps, seed=seed)
@@ -88,6 +90,33 @@ def test_deterministic_for_fixed_seed_and_seed_dependent():
     for x, y in zip(a, b):
         assert torch.equal(x, y)
     assert not torch.equal(a[0], c[0])
+
+
+def test_a_few_huge_splats_do_not_loosen_the_bounds_of_the_small_ones():
+    """(f) The tree sorts splats by scale class before position (ops/csrc/core/lbvh.h), so adding 3 splats
+    ~40x wider than 3000 small ones costs about the evaluations of the huge splats themselves, not of the
+    small splats that would share their nodes (sharing, every pixel the huge kernels reach evaluates the
+    groups holding them exactly: +10.2 evaluations per pixel here without the scale classes, −0.4 with)."""
+    dtype = torch.float64
+    g = torch.Generator().manual_seed(0)
+    n = 3000
+    means = torch.cat([(torch.rand(n, 2, generator=g, dtype=dtype) - 0.5) * 1.6, torch.zeros(n, 1, dtype=dtype)], 1)
+    normals = torch.tensor([0.0, 0.0, -1.0], dtype=dtype).expand(n, 3).contiguous()
+    scales = torch.full((n, 2), 0.01, dtype=dtype)
+    huge = torch.tensor([[-0.5, -0.3, 0.0], [0.1, 0.4, 0.0], [0.5, -0.2, 0.0]], dtype=dtype)
+    V, K = make_cameras(1, 64, 64, dtype=dtype, focal=100.0)
+
+    def work(with_huge: bool) -> float:
+        m_, n_, s_ = means, normals, scales
+        if with_huge:
+            m_ = torch.cat([means, huge])
+            n_ = torch.cat([normals, normals[:3]])
+            s_ = torch.cat([scales, torch.full((3, 2), 0.4, dtype=dtype)])
+        proj = project(m_, n_, s_, torch.ones(m_.shape[0], dtype=dtype), V, K, near=0.01, far=1e10, lowpass=1.0)
+        return float(sample(proj, K, 64, 64, samples=16, eps=0.01, seed=0)[3].double().mean())
+
+    small, mixed = work(False), work(True)
+    assert mixed - small < 6.0, (small, mixed)
 
 
 def test_pixels_below_floor_are_empty_and_show_background():

@@ -349,3 +349,38 @@ def test_fit_sh_rest_lr_scales_the_higher_bands_step_only(tmp_path):
     torch.testing.assert_close(moved[0.05][:, 3:], 0.05 * moved[1.0][:, 3:], rtol=1e-4, atol=1e-7)
     with pytest.raises(ConfigError, match="sh_rest_lr"):
         FitConfig(sh_rest_lr=0.0)
+
+
+def test_fit_max_scale_caps_every_std_dev_from_the_first_render(tmp_path):
+    """``max_scale = c``: std-devs that start above ``c`` are clamped before the first render (the first step's
+    loss is the dense L1 of the clamped scene) and none exceeds ``c`` after any step, while the same run without
+    the cap leaves them above it; a scene with a constant std-dev is a config error naming the option."""
+    _, images, vm, Ks, scene = _tiny_problem(n=120, views=4, res=24)
+    cap = 0.12
+    start = torch.full((120, 2), 0.08)
+    start[::7] = 0.4  # a few surfels far above the cap
+    rcfg = RenderConfig(renderer="dense")
+
+    def run(max_scale: float, epochs: int) -> tuple[SurfelScene, dict[str, float]]:
+        trial = SurfelScene.from_points(scene.cfg, scene.means.detach().clone(), scene.normals.detach().clone(),
+                                        scales=start.clone(), features=0.5)
+        cfg = FitConfig(epochs=epochs, batch=4, learn=_lr(0.05), lr_decays=0, reposition=False, max_scale=max_scale)
+        out = fit(trial, _views(images, vm, Ks), cfg, rcfg, tmp_path / f"c{max_scale}-e{epochs}",
+                  log=LogConfig(checkpoint=100, progress=False))
+        return trial, out
+
+    clamped = SurfelScene.from_points(scene.cfg, scene.means.detach().clone(), scene.normals.detach().clone(),
+                                      scales=start.clamp(max=cap), features=0.5)
+    with torch.no_grad():
+        expected = float((render_views(clamped, vm, Ks, 24, 24, rcfg) - images).abs().mean())
+    _, out = run(cap, 1)
+    assert out["train/loss"] == pytest.approx(expected, rel=1e-5), (out["train/loss"], expected)
+    capped, _ = run(cap, 6)
+    assert float(capped.scales.detach().max()) <= cap * (1 + 1e-6)
+    free, _ = run(0.0, 6)
+    assert float(free.scales.detach().max()) > 1.5 * cap
+    const = SurfelScene.from_points(SceneConfig(scale=0.1, learn=["means", "features"]), scene.means.detach(), scene.normals.detach(), features=0.5)
+    with pytest.raises(ConfigError, match="max_scale"):
+        fit(const, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn={"features": 0.01}, reposition=False,
+                                                     max_scale=0.05), rcfg, tmp_path / "const",
+            log=LogConfig(checkpoint=100, progress=False))

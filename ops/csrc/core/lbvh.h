@@ -1,4 +1,5 @@
-// Binary radix tree over the Morton codes of projected means (Karras 2012), built in parallel:
+// Binary radix tree over the sort keys (scale class, then the Morton code of the projected mean: morton_key)
+// of a camera's splats (Karras 2012), built in parallel:
 // every internal node is determined independently from the sorted unique 64-bit keys, then node
 // aggregates are propagated bottom-up (the second child to arrive at a parent computes it).
 //
@@ -9,9 +10,9 @@
 
 namespace nsplat {
 
-// 16-bit quantised coordinates interleaved into a 32-bit Morton code.
-NS_HD uint32_t spread_bits16(uint32_t x) {
-  x &= 0xFFFFu;
+// 15-bit quantised coordinates interleaved into a 30-bit Morton code.
+NS_HD uint32_t spread_bits15(uint32_t x) {
+  x &= 0x7FFFu;
   x = (x | (x << 8)) & 0x00FF00FFu;
   x = (x | (x << 4)) & 0x0F0F0F0Fu;
   x = (x | (x << 2)) & 0x33333333u;
@@ -19,14 +20,27 @@ NS_HD uint32_t spread_bits16(uint32_t x) {
   return x;
 }
 
-// Sort key of a point: Morton code of its mean in the box [lo, lo + extent] (high 32 bits), its
-// original index (low 32 bits) to make keys unique.
-NS_HD uint64_t morton_key(double x, double y, double lox, double loy, double inv_ext, int64_t id) {
+// Scale class of a splat from its largest principal variance sig2 (pixels^2): 0 below a std-dev of
+// kScaleClassBase pixels, then one class per factor 4 in std-dev (2, 8, 32 px and above). The class leads the
+// sort key, so the tree splits by class first and space second: a splat far larger than its neighbours no
+// longer shares a node with them. A node's bounds use its largest variance (NodeAgg::h2, the group metric of
+// tile.h), so one huge splat in a node of small ones would make the bounds of that node and all its ancestors
+// loose wherever the huge kernel reaches, and every pixel there would evaluate the small ones exactly.
+constexpr double kScaleClassBase = 2.0;
+NS_HD uint32_t scale_class(double sig2) {
+  const double b2 = kScaleClassBase * kScaleClassBase;
+  return (sig2 >= b2 ? 1u : 0u) + (sig2 >= 16.0 * b2 ? 1u : 0u) + (sig2 >= 256.0 * b2 ? 1u : 0u);
+}
+
+// Sort key of a point: its scale class (top 2 bits), the Morton code of its mean in the box [lo, lo + extent]
+// (next 30 bits), its original index (low 32 bits) to make keys unique.
+NS_HD uint64_t morton_key(double x, double y, double sig2, double lox, double loy, double inv_ext, int64_t id) {
   double fx = (x - lox) * inv_ext, fy = (y - loy) * inv_ext;
   fx = dmin(dmax(fx, 0.0), 1.0);
   fy = dmin(dmax(fy, 0.0), 1.0);
-  uint32_t qx = static_cast<uint32_t>(fx * 65535.0), qy = static_cast<uint32_t>(fy * 65535.0);
-  uint64_t code = (static_cast<uint64_t>(spread_bits16(qx)) << 1) | spread_bits16(qy);
+  uint32_t qx = static_cast<uint32_t>(fx * 32767.0), qy = static_cast<uint32_t>(fy * 32767.0);
+  uint64_t code = (static_cast<uint64_t>(scale_class(sig2)) << 30) | (static_cast<uint64_t>(spread_bits15(qx)) << 1) |
+                  spread_bits15(qy);
   return (code << 32) | static_cast<uint64_t>(static_cast<uint32_t>(id));
 }
 

@@ -32,7 +32,8 @@ namespace nsplat {
 
 struct ItemMetric;  // tile.h
 
-// A camera's tree; points are stored in Morton order (double copies of the projected values).
+// A camera's tree; points are stored in key order (morton_key: scale class, then Morton code; double copies of
+// the projected values).
 struct TreeView {
   int64_t n;                  // points in the tree (valid points of this camera)
   const InternalNode* nodes;  // [n-1]

@@ -69,7 +69,7 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
 #pragma omp parallel for num_threads(nt) schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     int64_t k = valid[i];
-    keys[i] = morton_key(double(mu[2 * k]), double(mu[2 * k + 1]), lox, loy, inv_ext, k);
+    keys[i] = morton_key(double(mu[2 * k]), double(mu[2 * k + 1]), double(sig2[k]), lox, loy, inv_ext, k);
   }
   std::sort(keys.begin(), keys.end());
   T.id.resize(n);

@@ -174,7 +174,7 @@ __global__ void box_fold_kernel(const double* __restrict__ part_box, const int64
 // Morton keys of valid points; invalid points get the all-ones key, which sorts after every valid key
 // (a valid key's low 32 bits hold an index < 2^31).
 template <typename S>
-__global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ amp, int64_t N,
+__global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ amp, const S* __restrict__ sig2, int64_t N,
                               const double* __restrict__ box, uint64_t* __restrict__ keys) {
   const double lox = box[0], loy = box[1], hix = box[2], hiy = box[3];
   const double ex = hix - lox, ey = hiy - loy;
@@ -182,7 +182,8 @@ __global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ am
   const double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
   NS_GRID_STRIDE(k, N) {
     keys[k] = amp[k] > S(0)
-                  ? morton_key(static_cast<double>(mu[2 * k]), static_cast<double>(mu[2 * k + 1]), lox, loy, inv_ext, k)
+                  ? morton_key(static_cast<double>(mu[2 * k]), static_cast<double>(mu[2 * k + 1]),
+                               static_cast<double>(sig2[k]), lox, loy, inv_ext, k)
                   : ~0ull;
   }
 }
@@ -294,7 +295,7 @@ void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* s
   // 2. keys and their radix sort (all 64 bits; invalid points sort last).
   at::Tensor raw = at::empty({N}, i64);
   T.keys = at::empty({N}, i64);
-  NS_LAUNCH(morton_kernel<S>, blocks_for(N, kThreads), kThreads, stream, mu, amp, N, box.data_ptr<double>(),
+  NS_LAUNCH(morton_kernel<S>, blocks_for(N, kThreads), kThreads, stream, mu, amp, sig2, N, box.data_ptr<double>(),
             as<uint64_t>(raw));
   NS_LAUNCH_CHECK();
   sort_keys(as<uint64_t>(raw), as<uint64_t>(T.keys), N, dev, stream);
