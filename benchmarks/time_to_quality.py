@@ -98,6 +98,9 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     **{f"s1-{s1}-op6+s2-{n}-vc{b}": (f"point-{s1}-op6", [f"neural.steps={n}", "neural.view_colour=true",
                                                          *(["neural.batch=1"] if b else [])])
        for s1 in ("54ep-norepo", "66ep-norepo", "72ep-norepo") for n in (250, 500) for b in ("", "-b1")},
+    **{f"s1-{e}ep-norepo-cap05+s2-{n}-vc-b1": (f"point-{e}ep-norepo-cap05", [f"neural.steps={n}", "neural.view_colour=true",
+                                                                          "neural.batch=1"])
+       for e in (54, 66, 72) for n in (250, 500)},
     "point-24ep-eval": ("point-24ep", ["neural.steps=0"]),  # its surfels re-evaluated (eval.draws averaged)
     "s1-24ep+s2-250-lowlr": ("point-24ep", ["neural.steps=250", "neural.view_colour=false",
                                             "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
@@ -129,6 +132,10 @@ CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                 # the same overrides run with the session-6 op (scale classes lead the tree's sort key)
                 **{f"point-{e}ep-norepo-op6": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}"]
                    for e in (54, 66, 72)},
+                # the rate halved once (after half the epochs) or never, instead of twice
+                **{f"point-{e}ep-norepo-op6-d{d}": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}",
+                                                                         f"geometry.optim.lr_decays={d}"]
+                   for e in (54, 72) for d in (0, 1)},
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})
