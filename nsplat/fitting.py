@@ -144,8 +144,9 @@ class FitConfig:
             repositioning and validation use the full resolution. 0 (default): off.
         max_scale: cap on every tangent std-dev (world units), enforced after each step by clamping the
             log-scales (a projection; Adam's moments are left as they are). A few surfels that grow far beyond
-            their neighbours make the sampler's tree bounds loose wherever they reach, which slows every
-            render (docs/results.md, "Time to quality", session 6); needs per-point scales. 0 (default): no cap.
+            their neighbours slow every render: their untruncated tails turn empty background pixels into
+            pixels the sampler must fill with m samples (docs/op.md §5; docs/results.md "Time to quality",
+            session 6); needs per-point scales. 0 (default): no cap.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
