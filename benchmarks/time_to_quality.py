@@ -47,7 +47,11 @@ SH = ["geometry.optim.shading=sh", "geometry.sh_degree=3"]
 #: surfels half the 3-NN spacing and a 0.3 px² screen-space low-pass instead of 1 px².
 SHARP = ["render.estimator=sampled", "geometry.scale_factor=0.5", "render.lowpass=0.3"]
 
-#: Configurations: overrides of the scene's shipped config. "point-*" rows are stage 1 alone (no U-Net).
+#: Configurations: overrides of the scene's shipped config as it was when the run was made (so a row of an
+#: earlier session reruns the same only with the settings shipped since undone: e.g. lego rows before session
+#: 7 ran without the annealing tail and with point features at 0.01, now `configs/lego.yaml`'s defaults;
+#: add `geometry.optim.anneal_epochs=0` and `neural.learn=…` to reproduce them). "point-*" rows are stage 1
+#: alone (no U-Net).
 CONFIGS: dict[str, list[str]] = {
     "shipped": [],  # the shipped config as it was when the run was made (default: issue 28 session 1)
     "main-job": [],  # configs/default.yaml since issue 28 session 2 (sharp stage 1, U-Net width 16, 500 steps)
@@ -77,6 +81,8 @@ CONFIGS: dict[str, list[str]] = {
     "sharp-w16-400": SHARP + ["neural.unet.width=16", "neural.steps=400"],
     "sharp-w16-500-e12": SHARP + ["neural.unet.width=16", "neural.steps=500", "geometry.optim.epochs=12"],
 }
+#: Stage-2 point-feature rates before session 7 (``configs/lego.yaml`` now learns the features at 0.003).
+F001 = "neural.learn={features: 0.01, means: 0.0001, opacities: 0.01}"
 #: Stage 2 continued from a finished point-only run (same seed, same thread count): "<config>": (point-only
 #: config, stage-2 overrides). The run loads that run's ``geometry.ply`` (no stage-1 fit of its own); its
 #: curve is the point-only run's stage-1 curve followed by stage 2, offset by that run's stage-1 seconds, so
@@ -101,6 +107,17 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
     **{f"s1-{e}ep-norepo-cap05+s2-{n}-vc-b1": (f"point-{e}ep-norepo-cap05", [f"neural.steps={n}", "neural.view_colour=true",
                                                                           "neural.batch=1"])
        for e in (54, 66, 72) for n in (250, 500)},
+    **{f"s1-{e}ep-norepo-cap05-a{a}+s2-{n}-vc-b1": (f"point-{e}ep-norepo-cap05-a{a}", [
+        f"neural.steps={n}", "neural.view_colour=true", "neural.batch=1", F001])
+       for e, a in ((54, 9), (72, 12), (72, 6), (72, 18)) for n in (250, 500)},
+    # session 7: stage 2 on the annealed surfels (no PatchGAN; slower point features; 500 steps)
+    **{f"s1-72ep-norepo-cap05-a12+s2-{n}-vc-b1-{v}": ("point-72ep-norepo-cap05-a12", [
+        f"neural.steps={n}", "neural.view_colour=true", "neural.batch=1", *o])
+       for n in (250, 500) for v, o in (("nogan", ["neural.gan.enabled=false", F001]),
+                                        ("f003", ["neural.learn={features: 0.003, means: 0.0001, opacities: 0.01}"]))},
+    "s1-72ep-norepo-cap05-a12-or+s2-250-vc-b1-f003": ("point-72ep-norepo-cap05-a12-or", [
+        "neural.steps=250", "neural.view_colour=true", "neural.batch=1",
+        "neural.learn={features: 0.003, means: 0.0001, opacities: 0.01}"]),
     "point-24ep-eval": ("point-24ep", ["neural.steps=0"]),  # its surfels re-evaluated (eval.draws averaged)
     "s1-24ep+s2-250-lowlr": ("point-24ep", ["neural.steps=250", "neural.view_colour=false",
                                             "neural.learn={features: 0.001, means: 0.00001, opacities: 0.001}"]),
@@ -136,6 +153,14 @@ CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                 **{f"point-{e}ep-norepo-op6-d{d}": POINT_ONLY + NOREPO + [f"geometry.optim.epochs={e}",
                                                                          f"geometry.optim.lr_decays={d}"]
                    for e in (54, 72) for d in (0, 1)},
+                # session 7: the last A epochs anneal the rate geometrically to 1/16 of the step schedule's
+                **{f"point-{e}ep-norepo-cap05-a{a}": POINT_ONLY + NOREPO + [
+                    f"geometry.optim.epochs={e}", "geometry.optim.max_scale=0.05", f"geometry.optim.anneal_epochs={a}",
+                    "geometry.optim.anneal_factor=0.0625"] for e, a in ((54, 9), (60, 10), (72, 12), (72, 6), (72, 18))},
+                # ... and with 3DGS's opacity reset after epochs 18 and 36 (every opacity lowered to 0.01)
+                "point-72ep-norepo-cap05-a12-or": POINT_ONLY + NOREPO + [
+                    "geometry.optim.epochs=72", "geometry.optim.max_scale=0.05", "geometry.optim.anneal_epochs=12",
+                    "geometry.optim.anneal_factor=0.0625", "geometry.optim.opacity_resets=[18, 36]"],
                 "point-36ep": POINT_ONLY + ["geometry.optim.epochs=36"],
                 "point-48ep": POINT_ONLY + ["geometry.optim.epochs=48"]})
 CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})

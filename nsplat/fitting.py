@@ -28,6 +28,7 @@ from nsplat.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
 from nsplat.losses import dssim_loss
 from nsplat.ops import tangent_frame
+from nsplat.points import reset_rows
 from nsplat.render import RenderConfig, render, render_views
 from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.shading import lambert
@@ -110,6 +111,19 @@ def cap_scales(scene: SurfelScene, max_scale: float) -> None:
         scene.tensor("scales").clamp_(max=math.log(max_scale))
 
 
+@torch.no_grad()
+def reset_opacities(scene: SurfelScene, value: float, optimizer: torch.optim.Optimizer) -> int:
+    """Lower every per-point opacity of ``scene`` above ``value`` to ``value`` in place (the opacity reset of
+    3DGS: surfels must earn their opacity again, and those that only fake other views' content fade) and zero
+    the opacity logits' Adam moments. Returns the number of surfels lowered."""
+    logits = scene.tensor("opacities")
+    cap = math.log(value / (1.0 - value))
+    lowered = int((logits > cap).sum())
+    logits.clamp_(max=cap)
+    reset_rows([optimizer], [logits], torch.arange(logits.shape[0], device=logits.device))
+    return lowered
+
+
 #: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
 PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
 
@@ -124,6 +138,10 @@ class FitConfig:
         learn: Adam learning rate per attribute (``means``, ``normals``, ``scales``, ``opacities``,
             ``features``); which attributes are learnable is the scene's ``learn`` list.
         lr_decays: number of times the rate is multiplied by ``lr_gamma``, at regular epoch intervals.
+        anneal_epochs: the last this many epochs also decay the rate geometrically, one factor per epoch, so
+            that the last epoch runs at ``anneal_factor`` times the step schedule's rate (on top of the
+            ``lr_decays`` halvings, which stay where they are). Single-view steps leave the surfels jittering
+            at the scale of the rate; the tail lets them settle. 0 (default): no tail.
         betas: Adam decay rates.
         shading: ``lambert`` (features are albedo, shaded per camera), ``none`` (features rendered as is) or
             ``sh`` (features are view-dependent RGB, spherical harmonics: :func:`nsplat.sh.view_colour`).
@@ -147,6 +165,9 @@ class FitConfig:
             their neighbours slow every render: their untruncated tails turn empty background pixels into
             pixels the sampler must fill with m samples (docs/op.md §5; docs/results.md "Time to quality",
             session 6); needs per-point scales. 0 (default): no cap.
+        opacity_resets: epochs (counted from 1) after which every opacity above ``reset_opacity`` is lowered to it
+            and the opacity moments are zeroed (:func:`reset_opacities`); needs learned per-point opacities.
+            Empty (default): never.
         mask_weight: weight of a coverage term ``mask_weight · mean |alpha − mask|`` added to the L1 image
             loss, against the views' masks (the alpha of RGBA images): silhouettes are fitted directly, not
             only through the colour contrast with the background. 0 (default): off; > 0 needs masks.
@@ -157,6 +178,8 @@ class FitConfig:
     learn: dict[str, float] = dataclasses.field(default_factory=lambda: dict(PAPER_LR))
     lr_decays: int = 5
     lr_gamma: float = 0.5
+    anneal_epochs: int = 0
+    anneal_factor: float = 1.0
     betas: tuple[float, float] = (0.9, 0.999)
     shading: Literal["lambert", "none", "sh"] = "lambert"
     reposition: bool = True
@@ -171,16 +194,33 @@ class FitConfig:
     coarse_epochs: int = 0
     coarse_factor: int = 2
     max_scale: float = 0.0
+    opacity_resets: list[int] = dataclasses.field(default_factory=list)
+    reset_opacity: float = 0.01
 
     def milestones(self) -> list[int]:
         """Epochs at which the rate is decayed: ``round(k·epochs/(lr_decays+1))``, k = 1..lr_decays."""
         return [round(k * self.epochs / (self.lr_decays + 1)) for k in range(1, self.lr_decays + 1)]
 
+    def rate_factor(self, epoch: int) -> float:
+        """Factor on every base rate during epoch ``epoch`` (0-based): ``lr_gamma`` per milestone passed, times
+        ``anneal_factor^(j / anneal_epochs)`` in the ``j``-th epoch of the tail (j = 1..anneal_epochs)."""
+        factor = self.lr_gamma ** sum(epoch >= m for m in self.milestones())
+        j = epoch - (self.epochs - self.anneal_epochs) + 1
+        if self.anneal_epochs > 0 and j > 0:
+            factor *= self.anneal_factor ** (min(j, self.anneal_epochs) / self.anneal_epochs)
+        return factor
+
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0",
                        reposition_every=">=1", min_weight=">=0", jitter=">=0", mask_weight=">=0", ssim_weight="unit",
                        sh_rest_lr="prob", coarse_epochs=">=0", coarse_factor=">=1",
-                       max_scale=">=0")
+                       max_scale=">=0", anneal_epochs=">=0", anneal_factor="prob")
+        require(0 < self.reset_opacity < 1, "reset_opacity", "a value in (0, 1)", self.reset_opacity)
+        require(all(0 < e < self.epochs for e in self.opacity_resets), "opacity_resets",
+                f"epochs in 1..{self.epochs - 1} (a reset after the last epoch would only lower the result)",
+                self.opacity_resets)
+        require(self.anneal_epochs <= self.epochs, "anneal_epochs", f"at most epochs ({self.epochs})",
+                self.anneal_epochs)
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
@@ -192,7 +232,7 @@ def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0) -> Trainables:
     if cfg.densify.enabled and "means" not in scene.cfg.learn:
         raise ValueError("densify.enabled: needs learnable means (the growth criterion is their gradient)")
     optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas))
-    scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, cfg.milestones(), gamma=cfg.lr_gamma)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda epoch: cfg.rate_factor(epoch))
     modules: dict[str, torch.nn.Module] = {"scene": scene}
     if cfg.densify.enabled:
         modules["density"] = DensityStats(scene.num_points, scene.means.dtype, scene.means.device)
@@ -225,6 +265,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     if cfg.max_scale > 0 and scene.cfg.scale is not None:
         raise ConfigError(f"max_scale: needs per-point scales (scene.scale: null); this scene's std-dev is the "
                           f"constant {scene.cfg.scale}")
+    if cfg.opacity_resets and "opacities" not in scene.cfg.learn:
+        raise ConfigError("opacity_resets: needs learned per-point opacities (scene.opacity: null and 'opacities' "
+                          "in the learned attributes)")
     try:
         coarse = views.downscaled(cfg.coarse_factor) if cfg.coarse_epochs > 0 else views
     except ValueError as exc:
@@ -296,6 +339,8 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
             if stats is not None and cfg.densify.due(epoch + 1):
                 counts = densify(scene, stats, cfg.densify, t.generator, [optimizer])
                 out.update({f"densify/{k}": v for k, v in counts.items()})
+            if epoch + 1 in cfg.opacity_resets:
+                out["epoch/opacity_reset"] = float(reset_opacities(scene, cfg.reset_opacity, optimizer))
             scheduler.step()
             out.update({"epoch/moved": float(moved), "epoch/lr": optimizer.param_groups[0]["lr"]})
         return out

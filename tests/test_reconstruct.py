@@ -14,7 +14,7 @@ from nsplat.metrics import point_cloud_distances
 from nsplat.ops import splat_dense
 from nsplat.data.views import PosedViews
 from nsplat.engine import LogConfig
-from nsplat.fitting import FitConfig, fit, point_contributions, reposition
+from nsplat.fitting import FitConfig, build, fit, point_contributions, reposition
 from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
@@ -384,3 +384,69 @@ def test_fit_max_scale_caps_every_std_dev_from_the_first_render(tmp_path):
         fit(const, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn={"features": 0.01}, reposition=False,
                                                      max_scale=0.05), rcfg, tmp_path / "const",
             log=LogConfig(checkpoint=100, progress=False))
+
+
+@pytest.mark.filterwarnings("ignore:Detected call of `lr_scheduler.step\\(\\)` before")  # rates only, no steps
+def test_fit_anneal_tail_decays_the_rate_geometrically_over_the_last_epochs(tmp_path):
+    """``anneal_epochs = A``, ``anneal_factor = f``: epochs before the tail keep the step schedule's rates
+    (``lr_gamma`` per milestone); the j-th epoch of the tail runs at ``f^(j/A)`` times that, the last at ``f``
+    times; without a tail the rates are those of ``MultiStepLR`` at the same milestones (the schedule of
+    earlier versions); a tail longer than the run or a factor outside (0, 1] is a config error naming it."""
+    scene = _tiny_problem(n=60, views=4, res=16)[4]
+    cfg = FitConfig(epochs=8, batch=4, learn=_lr(0.04), lr_decays=1, anneal_epochs=3, anneal_factor=0.125,
+                    reposition=False)
+    t = build(scene, cfg)
+    opt, sched = t.optimizers["fit"], t.schedulers["fit"]
+    rates = []
+    for _ in range(cfg.epochs):
+        rates.append(opt.param_groups[0]["lr"])
+        sched.step()
+    expected = [0.04] * 4 + [0.02, 0.02 * 0.5, 0.02 * 0.25, 0.02 * 0.125]
+    assert rates == pytest.approx(expected, rel=1e-12), rates
+    plain = FitConfig(epochs=12, batch=4, learn=_lr(0.04), lr_decays=3, lr_gamma=0.3, reposition=False)
+    t = build(scene, plain)
+    ref_opt = torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=0.04)
+    ref = torch.optim.lr_scheduler.MultiStepLR(ref_opt, plain.milestones(), gamma=0.3)
+    for _ in range(plain.epochs):
+        assert t.optimizers["fit"].param_groups[0]["lr"] == pytest.approx(ref_opt.param_groups[0]["lr"], rel=1e-12)
+        t.schedulers["fit"].step()
+        ref.step()
+    out = fit(scene, _views(*_tiny_problem(n=60, views=4, res=16)[1:4]), cfg, RenderConfig(renderer="dense"),
+              tmp_path, log=LogConfig(checkpoint=100, progress=False))
+    assert out["epoch/lr"] == pytest.approx(0.02 * 0.125)  # after the last epoch: the tail's end
+    with pytest.raises(ConfigError, match="anneal_epochs"):
+        FitConfig(epochs=4, anneal_epochs=5)
+    with pytest.raises(ConfigError, match="anneal_factor"):
+        FitConfig(epochs=4, anneal_epochs=2, anneal_factor=0.0)
+
+
+def test_fit_opacity_resets_lower_every_opacity_and_need_learned_opacities(tmp_path):
+    """``opacity_resets = [e]``: after epoch e every opacity is at most ``reset_opacity`` (the next steps start
+    from zeroed moments, so with a tiny opacity rate they stay there), while the same run without the reset
+    keeps them near their start; resets outside 1..epochs-1 or on a scene without learned opacities are
+    config errors naming the option."""
+    _, images, vm, Ks, scene = _tiny_problem(n=120, views=4, res=24)
+    cfg_scene = SceneConfig(opacity=None, learn=["means", "features", "opacities"])
+    rates = {"means": 1e-3, "features": 1e-2, "opacities": 1e-4}
+
+    def run(resets: list[int]) -> SurfelScene:
+        trial = SurfelScene.from_points(cfg_scene, scene.means.detach().clone(), scene.normals.detach().clone(),
+                                        features=0.5, opacities=0.6)
+        cfg = FitConfig(epochs=3, batch=4, learn=rates, lr_decays=0, reposition=False, opacity_resets=resets,
+                        reset_opacity=0.02)
+        fit(trial, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / f"r{resets}",
+            log=LogConfig(checkpoint=100, progress=False))
+        return trial
+
+    reset, free = run([2]), run([])
+    top = float(reset.opacities.detach().max())
+    assert top <= 0.02 * math.exp(1e-3), top
+    assert float(free.opacities.detach().min()) > 0.59
+    with pytest.raises(ConfigError, match="opacity_resets"):
+        FitConfig(epochs=3, opacity_resets=[3])
+    const = SurfelScene.from_points(SceneConfig(learn=["means", "features"]), scene.means.detach(),
+                                    scene.normals.detach(), features=0.5)
+    with pytest.raises(ConfigError, match="opacity_resets"):
+        fit(const, _views(images, vm, Ks), FitConfig(epochs=2, batch=4, learn={"features": 0.01}, reposition=False,
+                                                     opacity_resets=[1]), RenderConfig(renderer="dense"),
+            tmp_path / "const", log=LogConfig(checkpoint=100, progress=False))
