@@ -273,6 +273,8 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     except ValueError as exc:
         raise ConfigError(f"coarse_factor: {exc}") from exc
     payload = latest_payload(Path(run_dir), resume)
+    if payload is not None:  # a checkpoint of an earlier version holds a MultiStepLR state: the same rates
+        payload["schedulers"]["fit"].setdefault("lr_lambdas", [None])
     rows = checkpoint_rows(payload, "scene", "_means")
     if rows is not None and rows != scene.num_points:  # densified before the checkpoint
         scene.resize_(rows)

@@ -202,6 +202,24 @@ def test_fit_resumes_exactly(tmp_path):
     for name, t in straight.state_dict().items():
         assert torch.equal(t, resumed.state_dict()[name]), name
     assert not torch.equal(straight.means, _tiny_problem(n=120, views=6, res=16)[4].means)
+    # A checkpoint of an earlier version (its epoch scheduler a MultiStepLR, which gives the same rates)
+    # resumes to the same result.
+    with pytest.raises(_Interrupt):
+        fit(_tiny_problem(n=120, views=6, res=16)[4], views, cfg, rcfg, tmp_path / "c", log=lg, seed=3,
+            validate=stop_at_last)
+    folder = tmp_path / "c" / "checkpoints"
+    path = folder / (folder / "latest").read_text().strip()
+    payload = torch.load(path, weights_only=False)
+    state = payload["schedulers"]["fit"]
+    old = torch.optim.lr_scheduler.MultiStepLR(torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=0.03),
+                                               cfg.milestones(), gamma=cfg.lr_gamma)
+    payload["schedulers"]["fit"] = old.state_dict() | {"last_epoch": state["last_epoch"], "base_lrs": state["base_lrs"],
+                                                      "_last_lr": state["_last_lr"]}
+    torch.save(payload, path)
+    _, _, _, _, legacy = _tiny_problem(n=120, views=6, res=16)
+    fit(legacy, views, cfg, rcfg, tmp_path / "c", log=lg, seed=3, resume=True)
+    for name, t in straight.state_dict().items():
+        assert torch.equal(t, legacy.state_dict()[name]), name
 
 
 # ---------------------------------------------------------------------------------------- task
