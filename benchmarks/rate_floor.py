@@ -43,6 +43,40 @@ def val_psnr(scene, cfg, val) -> float:
     return float(psnr(rgb, val.images).mean())
 
 
+def setup(config: str, ply: str):
+    """``(cfg, train, val, load, start)``: the config, its train and val views, a loader of fresh copies of the
+    surfels in ``ply`` and their val PSNR (printed)."""
+    from nsplat.config import load_config, read_yaml
+    from nsplat.scene import SurfelScene
+    from nsplat.tasks.neural import load_views
+    from nsplat.tasks.neural_config import Config
+    from nsplat.tasks.neural_init import geometry_scene_config
+
+    cfg = load_config(Config, read_yaml(config), [])
+    cpu = torch.device("cpu")
+    train, val = load_views(cfg, "train", cpu), load_views(cfg, "val", cpu)
+    scene_cfg = geometry_scene_config(cfg)
+
+    def load():
+        return SurfelScene.load_ply(ply, scene_cfg, device=cpu)
+
+    start = val_psnr(load(), cfg, val)
+    print(f"{ply}: val PSNR {start:.2f} dB ({len(val)} views, {cfg.eval.draws} draws)")
+    return cfg, train, val, load, start
+
+
+def continue_fit(scene, train, fit_cfg, render_cfg, seed: int) -> tuple[dict[str, float], float, float]:
+    """Fit ``scene`` further with ``fit_cfg`` (checkpoints discarded): the last step's scalars, wall and CPU s."""
+    from nsplat.engine import LogConfig
+    from nsplat.fitting import fit
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = fit(scene, train, fit_cfg, render_cfg, tmp, seed=seed, background=train.background,
+                  log=LogConfig(checkpoint=10 ** 9, progress=False))
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("ply", help="fitted surfels (a neural run's geometry.ply)")
@@ -53,32 +87,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
 
-    from nsplat.config import load_config, read_yaml
-    from nsplat.engine import LogConfig
-    from nsplat.fitting import fit
-    from nsplat.scene import SurfelScene
-    from nsplat.tasks.neural import load_views
-    from nsplat.tasks.neural_config import Config
-    from nsplat.tasks.neural_init import geometry_scene_config
-
-    cfg = load_config(Config, read_yaml(args.config), [])
-    cpu = torch.device("cpu")
-    train, val = load_views(cfg, "train", cpu), load_views(cfg, "val", cpu)
-    scene_cfg = geometry_scene_config(cfg)
-    start = val_psnr(SurfelScene.load_ply(args.ply, scene_cfg, device=cpu), cfg, val)
+    cfg, train, val, load, start = setup(args.config, args.ply)
     rows = []
-    print(f"{args.ply}: val PSNR {start:.2f} dB ({len(val)} views, {cfg.eval.draws} draws)")
     print("| rate factor | epochs | val PSNR | Δ | last-step loss | fit s (wall) |\n|---|---|---|---|---|---|")
     g = cfg.geometry.optim
     for f in args.factors:
-        scene = SurfelScene.load_ply(args.ply, scene_cfg, device=cpu)
+        scene = load()
         ocfg = dataclasses.replace(g, epochs=args.epochs, lr_decays=0, anneal_epochs=0,
                                    learn={k: v * f for k, v in g.learn.items()})
-        t0 = time.perf_counter()
-        with tempfile.TemporaryDirectory() as tmp:
-            out = fit(scene, train, ocfg, cfg.render, tmp, seed=args.seed, background=train.background,
-                      log=LogConfig(checkpoint=10 ** 9, progress=False))
-        seconds = time.perf_counter() - t0
+        out, seconds, _ = continue_fit(scene, train, ocfg, cfg.render, args.seed)
         v = val_psnr(scene, cfg, val)
         rows.append({"factor": f, "epochs": args.epochs, "val_psnr": v, "loss": out["train/loss"], "fit_s": seconds})
         print(f"| {f:g} | {args.epochs} | {v:.2f} | {v - start:+.2f} | {out['train/loss']:.5f} | {seconds:.0f} |",

@@ -115,6 +115,11 @@ STAGE1_FROM: dict[str, tuple[str, list[str]]] = {
         f"neural.steps={n}", "neural.view_colour=true", "neural.batch=1", *o])
        for n in (250, 500) for v, o in (("nogan", ["neural.gan.enabled=false", F001]),
                                         ("f003", ["neural.learn={features: 0.003, means: 0.0001, opacities: 0.01}"]))},
+    # session 8: stage 2 that leaves the settled surfels where they are (features only), or a U-Net of width 8
+    "s1-72ep-norepo-cap05-a12+s2-250-vc-b1-fonly": ("point-72ep-norepo-cap05-a12", [
+        "neural.steps=250", "neural.view_colour=true", "neural.batch=1", "neural.learn={features: 0.003}"]),
+    "s1-72ep-norepo-cap05-a12+s2-250-vc-b1-f003-w8": ("point-72ep-norepo-cap05-a12", [
+        "neural.steps=250", "neural.view_colour=true", "neural.batch=1", "neural.unet.width=8"]),
     "s1-72ep-norepo-cap05-a12-or+s2-250-vc-b1-f003": ("point-72ep-norepo-cap05-a12-or", [
         "neural.steps=250", "neural.view_colour=true", "neural.batch=1",
         "neural.learn={features: 0.003, means: 0.0001, opacities: 0.01}"]),
@@ -167,9 +172,14 @@ CONFIGS.update({name: o for name, (_, o) in STAGE1_FROM.items()})
 #: The paper's thesis (issue 28 item 2): stage 1 alone from a poor start, per renderer/estimator.
 POOR_STARTS = {"random": ["geometry.init=random", "geometry.max_points=2400"], "tenth": ["geometry.init_fraction=0.1"],
                "shift3": ["geometry.init_shift=3"]}
-RENDERERS = {"ht": [], "sampled": ["render.estimator=sampled"], "truncated": ["render.renderer=truncated"]}
-CONFIGS.update({f"poor-{start}-{r}": POINT_ONLY + s + o for start, s in POOR_STARTS.items()
-                for r, o in RENDERERS.items()})
+#: The estimator is explicit: `configs/default.yaml` itself moved from `ht` to `sampled` (session 2), after the
+#: random/tenth rows had run with `ht` as the config's own estimator.
+RENDERERS = {"ht": ["render.estimator=ht"], "sampled": ["render.estimator=sampled"],
+             "truncated": ["render.renderer=truncated"]}
+#: "poor-*" ran in session 1 on the default config of that time (blurry surfels: std = spacing, 1 px² low-pass);
+#: "poor-*-sharp" (session 8) the same overrides on today's default (std ½ spacing, 0.3 px² low-pass).
+CONFIGS.update({f"poor-{start}-{r}{tag}": POINT_ONLY + s + o for start, s in POOR_STARTS.items()
+                for r, o in RENDERERS.items() for tag in ("", "-sharp")})
 
 
 def _load() -> list[float]:

@@ -12,19 +12,19 @@ screen-space magnitude ``‖∂L/∂μ₂d‖`` (pixels: the camera-plane part o
   plane, so the two separate under the next gradients);
 * **prune** surfels whose opacity fell below ``prune_opacity`` or whose std-dev exceeds ``prune_scale``.
 
-The point set is rebuilt with :meth:`nsplat.scene.SurfelScene.gather_` (optimiser state gathered, new
-rows start without momentum). Growth per event is capped by ``max_growth`` and the total by
-``max_points``, highest gradients first.
+The point set is rebuilt with :meth:`nsplat.scene.SurfelScene.gather_` (optimiser state gathered; new
+rows start without momentum, or with their source row's Adam moments under ``moments: inherit``). Growth
+per event is capped by ``max_growth`` and the total by ``max_points``, highest gradients first.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable
+from typing import Iterable, Literal
 
 import torch
 from torch import nn
 
-from nsplat.config import require_fields
+from nsplat.config import require, require_fields
 from nsplat.ops import tangent_frame
 from nsplat.scene import SurfelScene
 
@@ -47,6 +47,10 @@ class DensifyConfig:
         max_points: never exceed this many points.
         prune_opacity: prune below this opacity (only with per-point opacities; ``0``: never).
         prune_scale: prune points whose largest std-dev exceeds this (world units; ``0``: never).
+        moments: optimiser state of the new rows: ``reset`` (zero moments, as 3DGS) or ``inherit`` (their
+            source row's). With Adam's global step count, zero moments give a new row steps of several times
+            the rate for its first tens of steps (m̂/√v̂ with v̂ ≪ g²), which scatters fresh surfels on a
+            fitted surface; inherited moments step like their source.
     """
 
     enabled: bool = False
@@ -62,11 +66,13 @@ class DensifyConfig:
     max_points: int = 50000
     prune_opacity: float = 0.02
     prune_scale: float = 0.0
+    moments: Literal["reset", "inherit"] = "reset"
 
     def __post_init__(self) -> None:
         require_fields(self, start=">=1", every=">=1", stop=">=0", grad_threshold=">=0", split_size=">=0",
                        children=">=1", shrink=">0", clone_jitter=">=0", max_growth=">=0", max_points=">=1",
                        prune_opacity=">=0", prune_scale=">=0")
+        require(self.moments in ("reset", "inherit"), "moments", "'reset' or 'inherit'", self.moments)
 
     def due(self, epochs_done: int) -> bool:
         """Whether an event runs after ``epochs_done`` epochs."""
@@ -149,7 +155,7 @@ def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generat
     index = torch.cat([stay_idx, clone_idx, child_idx])
     fresh = torch.zeros(index.numel(), dtype=torch.bool, device=device)
     fresh[stay_idx.numel():] = True
-    scene.gather_(index, optimizers, fresh)
+    scene.gather_(index, optimizers, fresh if cfg.moments == "reset" else None)
 
     new_rows = torch.arange(stay_idx.numel(), index.numel(), device=device)
     if new_rows.numel():

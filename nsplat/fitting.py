@@ -219,8 +219,9 @@ class FitConfig:
         require(all(0 < e < self.epochs for e in self.opacity_resets), "opacity_resets",
                 f"epochs in 1..{self.epochs - 1} (a reset after the last epoch would only lower the result)",
                 self.opacity_resets)
-        require(self.anneal_epochs <= self.epochs, "anneal_epochs", f"at most epochs ({self.epochs})",
-                self.anneal_epochs)
+        # epochs = 0 (no fit: e.g. stage 2 from a fitted geometry.ply) leaves the tail nothing to anneal
+        require(self.epochs == 0 or self.anneal_epochs <= self.epochs, "anneal_epochs",
+                f"at most epochs ({self.epochs})", self.anneal_epochs)
         require(all(k in ATTRIBUTES and v > 0 for k, v in self.learn.items()), "learn",
                 f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 

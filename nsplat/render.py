@@ -31,7 +31,7 @@ RENDERERS = ("splat", "dense", "truncated")
 class RenderConfig:
     """Which renderer and with which settings (the op's arguments, see :func:`nsplat.ops.splat`).
 
-    The op's fields (``samples`` … ``stratified``) are exactly those of :class:`nsplat.ops.SplatSettings`,
+    The op's fields (``samples`` … ``backface_cull``) are exactly those of :class:`nsplat.ops.SplatSettings`,
     with its defaults; :meth:`op_settings` builds the value the op and :class:`nsplat.ops.Splatter` take
     (and, for the sampled renderer, validates it with the op's own checks at construction).
 
@@ -40,6 +40,8 @@ class RenderConfig:
         samples: samples per pixel m. eps: the sampler's error threshold ε.
         estimator: gradient estimator ``ht`` / ``ht-pips`` / ``paper`` / ``sampled`` (docs/method.md).
         stratified: stratified (rank-1 lattice) uniforms across pixels.
+        backface_cull: cull surfels whose normal faces away from the camera (every renderer; default:
+            two-sided surfels).
         composite: ``alpha`` (front-to-back) or ``additive``.
         background: colour composited under the splats (``null``: zeros; a per-call tensor overrides it).
         near, far: depth clipping range. lowpass: screen-space low-pass variance (px²).
@@ -53,6 +55,7 @@ class RenderConfig:
     eps: float = SplatSettings.eps
     estimator: Literal["ht", "ht-pips", "paper", "sampled"] = SplatSettings.estimator
     stratified: bool = SplatSettings.stratified
+    backface_cull: bool = SplatSettings.backface_cull
     composite: Literal["alpha", "additive"] = SplatSettings.composite
     background: list[float] | None = None
     near: float = SplatSettings.near
@@ -116,7 +119,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
     """
     if background is None:
         background = background_of(cfg, features.shape[-1], means)
-    common = dict(background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass)
+    common = dict(background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass,
+                  backface_cull=cfg.backface_cull)
     if cfg.renderer == "splat":
         return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, seed=int(seed),
                      background=background, **cfg.op_settings(estimator).kwargs())

@@ -36,7 +36,8 @@ def _quad(pix: torch.Tensor, mu: torch.Tensor, conic: torch.Tensor) -> torch.Ten
 def splat_truncated(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                     features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                     *, cutoff: float = 3.0, background: torch.Tensor | None = None, near: float = 0.01,
-                    far: float = 1e10, lowpass: float = 1.0, tile: int = 16) -> SplatOutput:
+                    far: float = 1e10, lowpass: float = 1.0, backface_cull: bool = False,
+                    tile: int = 16) -> SplatOutput:
     """Render with kernels truncated at ``cutoff`` σ and exact compositing of the points in range.
 
     Args:
@@ -44,7 +45,7 @@ def splat_truncated(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
         features ``[N,C]``, viewmats ``[B,4,4]`` (world→camera, OpenCV), Ks ``[B,3,3]``: as for the op.
         width, height: image size in pixels.
         cutoff: truncation radius in standard deviations of the screen-space kernel (> 0).
-        background: ``[C]`` background (default zeros). near, far, lowpass: as for the op.
+        background: ``[C]`` background (default zeros). near, far, lowpass, backface_cull: as for the op.
         tile: tile edge in pixels (memory/speed trade-off; results do not depend on it).
 
     Returns:
@@ -62,7 +63,8 @@ def splat_truncated(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
     bg = background if background is not None else means.new_zeros(C)
     if bg.shape != (C,):
         raise ValueError(f"background: expected shape [{C}], got {list(bg.shape)}")
-    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass)
+    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                   backface_cull=backface_cull)
     rays_all = pixel_rays(Ks, width, height)                       # [B,H,W,3]
     radius = cutoff * proj.sigma2.sqrt()                           # [B,N] px
     c2 = cutoff * cutoff

@@ -27,13 +27,15 @@ class Splatter(nn.Module):
     def __init__(self, samples: int = 40, eps: float = 0.01, estimator: str = "ht", composite: str = "alpha",
                  near: float = 0.01, far: float = 1e10, lowpass: float = 1.0, base_seed: int = 0,
                  hermite_order: int = 8, hermite_tol: float = 1e-3, deterministic: bool = True,
-                 stratified: bool = False, *, settings: SplatSettings | None = None) -> None:
+                 stratified: bool = False, backface_cull: bool = False, *,
+                 settings: SplatSettings | None = None) -> None:
         """The settings are the keyword arguments, or ``settings`` (then the other op arguments are ignored)."""
         super().__init__()
         if settings is None:  # validated at construction, not at the first forward
             settings = SplatSettings(samples=samples, eps=eps, estimator=estimator, composite=composite, near=near,
                                      far=far, lowpass=lowpass, hermite_order=hermite_order, hermite_tol=hermite_tol,
-                                     deterministic=deterministic, stratified=stratified)
+                                     deterministic=deterministic, stratified=stratified,
+                                     backface_cull=backface_cull)
         elif not isinstance(settings, SplatSettings):
             raise TypeError(f"settings: expected a SplatSettings, got {type(settings).__name__}")
         check_sampling(samples=settings.samples, eps=settings.eps, estimator=settings.estimator, seed=base_seed,

@@ -6,7 +6,9 @@ view-independent orthonormal frame of its normal (Duff et al. 2017), scaled by `
 local affine map of the tangent plane to the screen is the exact perspective Jacobian ``J`` (2×2,
 scales included); the screen covariance is ``Σ = J Jᵀ + lowpass·I`` and the splat's alpha at pixel
 ``x`` is ``α(x) = min(α_max, A·exp(-½ (x-μ)ᵀ Σ⁻¹ (x-μ)))`` with the unit-peak amplitude
-``A = o·|det J| / sqrt(det Σ)`` (``= o`` without low-pass).
+``A = o·|det J| / sqrt(det Σ)`` (``= o`` without low-pass). Surfels are two-sided unless
+``backface_cull``: then a surfel whose normal faces away from the camera (``n_c · q ≥ 0``, classic surface
+splatting's back-face culling) is culled in that camera like a point outside ``[near, far]``.
 
 Everything the per-pixel stages need is returned per camera and point; gradients flow back to the
 surfel parameters and to ``viewmats``/``Ks`` through autograd.
@@ -37,7 +39,8 @@ class Projected:
         plane_offsets: ``[B,N]`` ``n_c · q`` (plane equation ``n_c · X = n_c · q``).
         depths: ``[B,N]`` centre depth ``q_z``.
         sigma2: ``[B,N]`` largest eigenvalue of ``Σ`` (px²), for the sampler's isotropic majorant.
-        valid: ``[B,N]`` bool, the point is inside ``[near, far]`` and not exactly edge-on.
+        valid: ``[B,N]`` bool, the point is inside ``[near, far]``, not exactly edge-on and (with
+            ``backface_cull``) faces the camera.
     """
 
     means2d: torch.Tensor
@@ -78,7 +81,7 @@ def pixel_rays(Ks: torch.Tensor, width: int, height: int) -> torch.Tensor:
 
 def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
             viewmats: torch.Tensor, Ks: torch.Tensor, *, near: float, far: float,
-            lowpass: float) -> Projected:
+            lowpass: float, backface_cull: bool = False) -> Projected:
     """Project surfels ``[N]`` into cameras ``[B]``; see the module docstring for the model.
 
     Args:
@@ -86,6 +89,8 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
         scales: ``[N,2]`` tangent std-devs (world units). opacities: ``[N]`` in [0, 1].
         viewmats: ``[B,4,4]`` world→camera. Ks: ``[B,3,3]`` intrinsics (pixels).
         near, far: clipping range on the centre depth. lowpass: screen-space low-pass variance (px²).
+        backface_cull: cull, per camera, the surfels whose normal faces away from it (``n_c · q ≥ 0``). The
+            cut is a hard decision (no gradient across it, like the ``near`` plane).
 
     Raises ``TypeError``/``ValueError`` naming the argument for invalid inputs (as :func:`nsplat.ops.splat`)
     and for the float hazards of ``ops/validation.py::check_projection_numerics``.
@@ -142,7 +147,10 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     grads = torch.is_grad_enabled() and any(x.requires_grad for x in (means, normals, scales, viewmats, Ks))
     check_projection_numerics(in_range=in_range, detJ=detJ, det=det, means2d=means2d, lowpass=float(lowpass),
                               differentiable=grads)
+    plane_offsets = n_cam[0] * q[0] + n_cam[1] * q[1] + n_cam[2] * q[2]
     valid = in_range & (detJ != 0) & (det > 0)
+    if backface_cull:
+        valid = valid & (plane_offsets.detach() < 0)
     dets = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([s11 / dets, -s01 / dets, s00 / dets], dim=-1)
     amps = torch.where(valid, opac * detJ.abs() / dets.sqrt(), torch.zeros_like(det))
@@ -153,7 +161,7 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
         conics=torch.where(valid[..., None], conics, torch.zeros_like(conics)),
         amps=amps,
         normals_cam=torch.stack(n_cam, dim=-1),
-        plane_offsets=n_cam[0] * q[0] + n_cam[1] * q[1] + n_cam[2] * q[2],
+        plane_offsets=plane_offsets,
         depths=z,
         sigma2=torch.where(valid, sigma2, torch.zeros_like(sigma2)),
         valid=valid,

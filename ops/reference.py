@@ -15,7 +15,7 @@ import torch
 from .output import SplatOutput
 from .projection import ALPHA_MAX, PARALLEL_COS, Projected, pixel_rays, project
 from .rng import uniforms
-from .validation import check_geometry, check_settings
+from .validation import check_backface_cull, check_geometry, check_settings
 
 
 def pixel_centres(width: int, height: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -65,7 +65,8 @@ def _composite_dense(alpha: torch.Tensor, depth: torch.Tensor, features: torch.T
 def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                 features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                 *, composite: str = "alpha", background: torch.Tensor | None = None, near: float = 0.01,
-                far: float = 1e10, lowpass: float = 1.0, max_chunk: int = 2**22) -> SplatOutput:
+                far: float = 1e10, lowpass: float = 1.0, backface_cull: bool = False,
+                max_chunk: int = 2**22) -> SplatOutput:
     """Exact surface splatting of all N points at every pixel (the oracle; O(N·H·W) time and memory).
 
     Same geometry, conventions and compositing as :func:`nsplat.ops.splat` (see its docstring), with
@@ -74,6 +75,7 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
     Args:
         means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]``,
         viewmats ``[B,4,4]``, Ks ``[B,3,3]``: as in :func:`nsplat.ops.splat`.
+        backface_cull: cull surfels facing away from each camera, as :func:`nsplat.ops.splat`.
         max_chunk: pixels × points × channels evaluated at once (bounds peak memory).
 
     Returns:
@@ -84,7 +86,9 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
     check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
                    background=background, C=C, dtype=means.dtype, device=means.device)
     bg = background if background is not None else means.new_zeros(C)
-    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass)
+    check_backface_cull(backface_cull)
+    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                   backface_cull=backface_cull)
     pix = pixel_centres(width, height, means.dtype, means.device)
     rays = pixel_rays(Ks, width, height).reshape(B, -1, 3)
     chunk = max(1, max_chunk // max(1, N * (C + 4)))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from .validation import COMPOSITES, check_deterministic, check_range, check_sampling
+from .validation import COMPOSITES, check_backface_cull, check_deterministic, check_range, check_sampling
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,6 +24,7 @@ class SplatSettings:
         hermite_order, hermite_tol: the sampler's Hermite expansions.
         deterministic: fixed-order backward (False: atomic-scatter CPU backward).
         stratified: stratified uniforms across pixels.
+        backface_cull: cull surfels facing away from each camera (default: two-sided).
     """
 
     samples: int = 40
@@ -37,6 +38,7 @@ class SplatSettings:
     hermite_tol: float = 1e-3
     deterministic: bool = True
     stratified: bool = False
+    backface_cull: bool = False
 
     def __post_init__(self) -> None:
         check_sampling(samples=self.samples, eps=self.eps, estimator=self.estimator, seed=0,
@@ -45,6 +47,7 @@ class SplatSettings:
         if self.composite not in COMPOSITES:
             raise ValueError(f"composite: expected one of {COMPOSITES}, got {self.composite!r}")
         check_deterministic(self.deterministic)
+        check_backface_cull(self.backface_cull)
 
     def kwargs(self) -> dict[str, Any]:
         """The settings as keyword arguments of :func:`nsplat.ops.splat`."""

@@ -223,6 +223,12 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol,
         raise ValueError(f"hermite_tol: expected a value in (0, 1), got {hermite_tol}")
 
 
+def check_backface_cull(backface_cull) -> None:
+    """``backface_cull`` must be a bool (cull surfels facing away from each camera, or render both sides)."""
+    if not isinstance(backface_cull, bool):
+        raise TypeError(f"backface_cull: expected a bool, got {type(backface_cull).__name__}")
+
+
 def check_deterministic(deterministic) -> None:
     """``deterministic`` must be a bool (fixed-order backward vs atomic-scatter backward)."""
     if not isinstance(deterministic, bool):

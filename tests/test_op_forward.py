@@ -82,3 +82,38 @@ def test_module_wrapper_and_any_channel_count():
     d = splat(*_args(sc, V, K)[:7], W, H, samples=8, eps=0.01, seed=5)
     assert torch.equal(c.image, d.image)
     assert "samples=8" in repr(mod)
+
+
+@pytest.mark.parametrize("renderer", ["splat", "dense", "truncated"])
+def test_backface_cull_renders_exactly_the_surfels_facing_each_camera(renderer):
+    """``backface_cull=True`` equals rendering, per camera, only the surfels whose normal faces it (n_c·q < 0)
+    with the same renderer (the sampled op with m >= N is exact); culled surfels get no gradient from that
+    camera, and two-sided rendering (the default) differs."""
+    from nsplat.render_truncated import splat_truncated
+    fn = {"splat": lambda *a, **k: splat(*a, samples=40, **k), "dense": splat_dense,
+          "truncated": splat_truncated}[renderer]
+    sc = make_scene(40, 1, C=3, dtype=torch.float64)
+    sc["normals"][::2] *= -1  # half of them face away from the cameras
+    V, K = make_cameras(2, W, H, dtype=torch.float64)
+    means = sc["means"].clone().requires_grad_(True)
+    out = fn(means, *_args(sc, V, K)[1:], backface_cull=True)
+    for b in range(2):
+        q = sc["means"] @ V[b, :3, :3].T + V[b, :3, 3]
+        front = ((sc["normals"] @ V[b, :3, :3].T) * q).sum(-1) < 0
+        assert 0 < int(front.sum()) < 40
+        sub = {k: v[front] for k, v in sc.items()}
+        ref = fn(*_args(sub, V[b:b + 1], K[b:b + 1]))
+        assert torch.allclose(out.image[b:b + 1], ref.image, atol=1e-9, rtol=0), renderer
+        grad, = torch.autograd.grad(out.image[b].sum(), means, retain_graph=True)
+        assert float(grad[~front].abs().max()) == 0 and float(grad[front].abs().max()) > 0
+    two_sided = fn(*_args(sc, V, K))
+    assert float((two_sided.image - out.image).detach().abs().max()) > 1e-3
+
+
+def test_backface_cull_must_be_a_bool():
+    sc = make_scene(8, 1, dtype=torch.float32)
+    V, K = make_cameras(1, W, H, dtype=torch.float32)
+    with pytest.raises(TypeError, match="backface_cull"):
+        splat(*_args(sc, V, K), backface_cull=1)
+    with pytest.raises(TypeError, match="backface_cull"):
+        Splatter(backface_cull="yes")

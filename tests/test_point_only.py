@@ -100,6 +100,10 @@ def test_lego_point_only_config_is_lego_stage_one_twice_as_long():
     lego = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"))
     assert point.neural.steps == 0 and lego.neural.steps > 0
     assert point.data == lego.data and point.render == lego.render and point.geometry == lego.geometry
+    # stage 2 alone on fitted surfels (what the time-to-quality benchmark's "s1-…+s2-…" rows run) loads too
+    again = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"),
+                        ["geometry.init=ply", "geometry.ply=fitted.ply", "geometry.optim.epochs=0"])
+    assert again.geometry.optim.epochs == 0 and again.geometry.optim.anneal_epochs == lego.geometry.optim.anneal_epochs
 
 
 def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):

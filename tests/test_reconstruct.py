@@ -436,6 +436,7 @@ def test_fit_anneal_tail_decays_the_rate_geometrically_over_the_last_epochs(tmp_
         FitConfig(epochs=4, anneal_epochs=5)
     with pytest.raises(ConfigError, match="anneal_factor"):
         FitConfig(epochs=4, anneal_epochs=2, anneal_factor=0.0)
+    FitConfig(epochs=0, anneal_epochs=12)  # no fit (stage 2 from a fitted geometry.ply): nothing to anneal
 
 
 def test_fit_opacity_resets_lower_every_opacity_and_need_learned_opacities(tmp_path):
