@@ -161,7 +161,8 @@ CONFIGS.update({"point-12ep": POINT_ONLY + ["geometry.optim.epochs=12"],
                 # session 7: the last A epochs anneal the rate geometrically to 1/16 of the step schedule's
                 **{f"point-{e}ep-norepo-cap05-a{a}": POINT_ONLY + NOREPO + [
                     f"geometry.optim.epochs={e}", "geometry.optim.max_scale=0.05", f"geometry.optim.anneal_epochs={a}",
-                    "geometry.optim.anneal_factor=0.0625"] for e, a in ((54, 9), (60, 10), (72, 12), (72, 6), (72, 18))},
+                    "geometry.optim.anneal_factor=0.0625"] for e, a in ((54, 9), (60, 10), (72, 12), (72, 6), (72, 18),
+                                                                        (80, 13))},
                 # ... and with 3DGS's opacity reset after epochs 18 and 36 (every opacity lowered to 0.01)
                 "point-72ep-norepo-cap05-a12-or": POINT_ONLY + NOREPO + [
                     "geometry.optim.epochs=72", "geometry.optim.max_scale=0.05", "geometry.optim.anneal_epochs=12",
