@@ -8,12 +8,12 @@ import math
 import pytest
 import torch
 
-from nsplat.densify import DensifyConfig, DensityStats, densify
+from nsplat.fitting.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, fit
 from nsplat.render import RenderConfig
 from nsplat.scene import SceneConfig, SurfelScene
-from tests.test_reconstruct import _lr, _tiny_problem, _views
+from tests.test_reconstruct import OFF, _lr, _tiny_problem, _views
 
 
 def _scene(n: int = 6) -> SurfelScene:
@@ -72,26 +72,6 @@ def test_densify_splits_clones_prunes_and_gathers_optimizer_state():
     opt.step()
 
 
-def test_densify_new_rows_inherit_their_source_rows_moments_when_asked():
-    scene = _scene()
-    opt = _stepped_adam(scene)
-    old_state = {n: {k: v.clone() for k, v in opt.state[scene.tensor(n)].items()} for n in scene.cfg.learn}
-    stats = DensityStats(6)
-    stats.grad.copy_(torch.tensor([0.0, 5.0, 3.0, 0.0, 4.0, 2.0]))
-    stats.views.fill_(1.0)
-    cfg = DensifyConfig(enabled=True, grad_threshold=1.0, split_size=0.03, max_growth=1.0, prune_opacity=0.05,
-                        moments="inherit")
-    densify(scene, stats, cfg, torch.Generator().manual_seed(0), [opt])
-    index = torch.tensor([2, 3, 4] + [2, 4] + [1, 1, 5, 5])  # stay, clones, split children (as above)
-    for name in scene.cfg.learn:
-        st = opt.state[scene.tensor(name)]
-        for key in ("exp_avg", "exp_avg_sq"):
-            assert float(old_state[name][key][index[3:]].abs().min()) > 0, (name, key)  # a real check
-            assert torch.equal(st[key], old_state[name][key][index]), (name, key)
-    with pytest.raises(ValueError, match="moments"):
-        DensifyConfig(moments="keep")
-
-
 def test_densify_respects_growth_caps_highest_gradients_first():
     scene = _scene()
     stats = DensityStats(6)
@@ -135,7 +115,7 @@ class _Interrupt(Exception):
 
 def test_fit_with_densification_resumes_exactly(tmp_path):
     dens = DensifyConfig(enabled=True, start=1, every=1, grad_threshold=0.0, split_size=0.05, max_growth=0.25)
-    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition=False, densify=dens)
+    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition=OFF, densify=dens)
     rcfg = RenderConfig(renderer="splat")
     lg = LogConfig(checkpoint=2, validate=1, progress=False)  # 2 steps per epoch: a checkpoint per epoch
     _, images, vm, Ks, straight = _tiny_problem(n=120, views=6, res=16)

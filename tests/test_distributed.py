@@ -57,7 +57,7 @@ def _tiny(cache: Path) -> dict:
         "task": "neural", "seed": 0,
         "data": {"procedural": {"seed": 1, "resolution": 24, "views": [6, 2, 2], "objects": 2,
                                 "cache_dir": str(cache)}},
-        "geometry": {"grid": 24, "optim": {"epochs": 2, "batch": 3, "reposition": True, "reposition_every": 1,
+        "geometry": {"grid": 24, "optim": {"epochs": 2, "batch": 3, "reposition": {"every": 1},
                                            "densify": {"enabled": True, "grad_threshold": 0.0, "max_growth": 0.2}}},
         "render": {"samples": 16},
         "neural": {"steps": 12, "batch": 4, "features": 4, "unet": {"depth": 2, "width": 8, "norm": "none"},

@@ -210,7 +210,7 @@ def _tiny_config(tmp: Path) -> Path:
            "init": {"count": 48}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
                                            "opacity": 1.0},
            "render": {"renderer": "splat", "samples": 4},
-           "optim": {"epochs": EPOCHS, "batch": 2, "reposition": False},
+           "optim": {"epochs": EPOCHS, "batch": 2, "reposition": {"enabled": False}},
            "log": {"checkpoint": 1, "validate": 0}, "renders": 0}
     path = tmp / "tiny.yaml"
     path.write_text(yaml.safe_dump(cfg))

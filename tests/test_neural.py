@@ -31,7 +31,7 @@ def _tiny(cache: Path, **neural) -> dict:
         "task": "neural", "seed": 0,
         "data": {"procedural": {"seed": 1, "resolution": 24, "views": [6, 2, 2], "objects": 2,
                                 "cache_dir": str(cache)}},
-        "geometry": {"grid": 24, "optim": {"epochs": 1, "batch": 3, "reposition": False}},
+        "geometry": {"grid": 24, "optim": {"epochs": 1, "batch": 3, "reposition": {"enabled": False}}},
         "render": {"samples": 16},
         "neural": {"steps": 4, "batch": 2, "features": 4, "unet": {"depth": 2, "width": 8},
                    "gan": {"width": 8, "layers": 2}, **neural},

@@ -71,7 +71,7 @@ def test_sh_degree_must_match_the_shading(tmp_path):
 def test_point_only_sh_run_trains_evaluates_and_records_its_curve(tmp_path):
     raw = _tiny(tmp_path / "cache", steps=0)
     raw["geometry"] = {"grid": 24, "sh_degree": 2, "log": {"validate": 2},
-                       "optim": {"epochs": 2, "batch": 3, "reposition": False, "shading": "sh"}}
+                       "optim": {"epochs": 2, "batch": 3, "reposition": {"enabled": False}, "shading": "sh"}}
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(raw))
     run = tmp_path / "run"
     assert main(["--config", str(tmp_path / "c.yaml"), "--run", str(run)]) == 0
@@ -106,9 +106,8 @@ def test_lego_point_only_config_is_lego_stage_one_twice_as_long():
     assert again.geometry.optim.epochs == 0 and again.geometry.optim.anneal_epochs == lego.geometry.optim.anneal_epochs
 
 
-def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):
-    """``geometry.init_fraction`` keeps a random subset of the hull points, ``init_shift`` moves them all
-    by that many voxels along (1,1,1)/√3, ``init: random`` draws ``max_points`` points in the box."""
+def test_random_start_draws_max_points_in_the_box(tmp_path):
+    """``geometry.init: random`` draws ``max_points`` points in ``geometry.bbox`` instead of the hull's."""
     from nsplat.tasks.neural import load_views
     from nsplat.tasks.neural_init import initial_geometry
 
@@ -119,15 +118,8 @@ def test_poor_starts_thin_shift_or_replace_the_hull(tmp_path):
         return initial_geometry(cfg, load_views(cfg, "train", torch.device("cpu")), seed=0).means.detach()
 
     hull = start()
-    tenth = start(init_fraction=0.1)
-    assert tenth.shape[0] == round(0.1 * hull.shape[0])
-    assert bool((torch.cdist(tenth, hull).min(1).values < 1e-6).all())  # a subset of the hull points
-    voxel = 3.0 / 24  # default bbox [-1.5, 1.5]³ on a 24³ grid
-    shifted = start(init_shift=2.0)
-    assert torch.allclose(shifted - hull, torch.full_like(hull, 2.0 * voxel / math.sqrt(3.0)), atol=1e-6)
+    assert hull.shape[0] != 300
     rand = start(init="random", max_points=300, bbox=[-1.0, -0.5, -0.2, 1.0, 0.5, 0.2])
     assert rand.shape == (300, 3)
     assert bool((rand.min(0).values >= torch.tensor([-1.0, -0.5, -0.2])).all())
     assert bool((rand.max(0).values <= torch.tensor([1.0, 0.5, 0.2])).all())
-    with pytest.raises(ConfigError, match="geometry.init_fraction"):
-        start(init_fraction=0.0)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import kornia
 import pytest
 import torch
 
@@ -14,7 +13,8 @@ from nsplat.metrics import point_cloud_distances
 from nsplat.ops import splat_dense
 from nsplat.data.views import PosedViews
 from nsplat.engine import LogConfig
-from nsplat.fitting import FitConfig, build, fit, point_contributions, reposition
+from nsplat.fitting import FitConfig, MaskLossConfig, RepositionConfig, build, fit
+from nsplat.fitting.reposition import point_contributions, reposition
 from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
@@ -156,6 +156,10 @@ def _tiny_problem(n: int = 300, views: int = 8, res: int = 24):
     return gt_pts, images, vm, Ks, SurfelScene.from_points(SceneConfig(), s0, n0, features=0.5)
 
 
+#: Repositioning off (the default is the paper's check after every epoch).
+OFF = RepositionConfig(enabled=False)
+
+
 def _lr(value: float) -> dict[str, float]:
     return {a: value for a in ("means", "normals", "scales", "features")}
 
@@ -181,7 +185,7 @@ class _Interrupt(Exception):
 
 
 def test_fit_resumes_exactly(tmp_path):
-    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition_every=1, min_weight=0.5)
+    cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition=RepositionConfig(every=1, min_weight=0.5))
     rcfg = RenderConfig(renderer="splat")
     lg = LogConfig(checkpoint=2, validate=1, progress=False)  # 2 steps per epoch: a checkpoint per epoch
     _, images, vm, Ks, straight = _tiny_problem(n=120, views=6, res=16)
@@ -237,7 +241,7 @@ def test_task_registered_and_config_errors_name_the_key():
 
 
 def test_fit_mask_weight_fits_coverage_and_needs_masks(tmp_path):
-    """``mask_weight``: the coverage term alone moves the silhouette towards the masks. The scene's colour
+    """``mask_loss.weight``: the coverage term alone moves the silhouette towards the masks. The scene's colour
     equals the background, so the image loss is 0 everywhere and only the coverage term has a gradient;
     views without masks are a config error naming the option."""
     gt_pts, _, vm, Ks, _ = _tiny_problem(n=200, views=6, res=16)
@@ -257,95 +261,18 @@ def test_fit_mask_weight_fits_coverage_and_needs_masks(tmp_path):
         return float((a - gt_alpha).abs().mean())
 
     before = coverage_error()
-    control = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=False)
+    control = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=OFF)
     fit(scene, views, control, RenderConfig(renderer="splat"), tmp_path / "c", background=torch.ones(3),
         log=LogConfig(checkpoint=100, progress=False))
     assert coverage_error() > 0.95 * before  # without the term the silhouette stays (the image loss is ~0)
-    cfg = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=False,
+    cfg = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=OFF,
                     mask_weight=1.0)
     fit(scene, views, cfg, RenderConfig(renderer="splat"), tmp_path / "a", background=torch.ones(3),
         log=LogConfig(checkpoint=100, progress=False))
     assert coverage_error() < 0.5 * before, (before, coverage_error())
-    with pytest.raises(ConfigError, match="mask_weight"):
+    with pytest.raises(ConfigError, match="mask.weight"):
         fit(scene, PosedViews(white, vm, Ks, [str(i) for i in range(6)]), cfg, RenderConfig(renderer="splat"),
             tmp_path / "b", log=LogConfig(checkpoint=100, progress=False))
-
-
-def test_fit_ssim_weight_mixes_l1_and_dssim_and_is_range_checked(tmp_path):
-    """``ssim_weight = s``: the fitter's loss of a step is the views' mean of ``(1 − s)·L1 + s·D-SSIM`` (checked
-    against an independent computation on the scene before the step, dense renderer: deterministic), and a
-    value outside [0, 1] is a config error naming the option."""
-    _, images, vm, Ks, scene = _tiny_problem(n=120, views=4, res=24)
-    rcfg = RenderConfig(renderer="dense")
-    with torch.no_grad():
-        pred = render_views(scene, vm, Ks, 24, 24, rcfg)
-    l1 = (pred - images).abs().mean(dim=(1, 2, 3))
-    dssim = torch.stack([kornia.losses.ssim_loss(pred[v:v + 1].permute(0, 3, 1, 2), images[v:v + 1].permute(0, 3, 1, 2),
-                                                 window_size=11, max_val=1.0) for v in range(4)])
-    for s in (0.0, 0.2, 1.0):
-        trial = SurfelScene.from_points(scene.cfg, scene.means.detach().clone(), scene.normals.detach().clone(),
-                                        features=0.5)
-        cfg = FitConfig(epochs=1, batch=4, learn=_lr(1e-3), reposition=False, ssim_weight=s)
-        out = fit(trial, _views(images, vm, Ks), cfg, rcfg, tmp_path / f"s{s}", log=LogConfig(checkpoint=100,
-                                                                                              progress=False))
-        expected = float(((1 - s) * l1 + s * dssim).mean())
-        assert out["train/loss"] == pytest.approx(expected, rel=1e-5), (s, out["train/loss"], expected)
-    with pytest.raises(ConfigError, match="ssim_weight"):
-        FitConfig(ssim_weight=1.5)
-
-
-def test_downscaled_views_are_block_means_with_matching_intrinsics():
-    """``PosedViews.downscaled(f)``: every coarse pixel is the mean of its ``f × f`` block (images and masks),
-    a world point projects with the scaled intrinsics to its full-size pixel coordinates divided by ``f``
-    (pixel centres at +0.5 on both grids), ``f = 1`` is the identity, and a non-dividing ``f`` is an error."""
-    g = torch.Generator().manual_seed(0)
-    images, masks = torch.rand(3, 12, 18, 3, generator=g), torch.rand(3, 12, 18, generator=g)
-    vm, Ks = _cameras(3, 12)
-    views = PosedViews(images, vm, Ks, ["a", "b", "c"], masks=masks)
-    coarse = views.downscaled(3)
-    assert (coarse.width, coarse.height) == (6, 4)
-    block = images.reshape(3, 4, 3, 6, 3, 3).mean(dim=(2, 4))
-    torch.testing.assert_close(coarse.images, block, rtol=0, atol=1e-6)
-    torch.testing.assert_close(coarse.masks, masks.reshape(3, 4, 3, 6, 3).mean(dim=(2, 4)), rtol=0, atol=1e-6)
-    x = torch.tensor([0.1, -0.2, 0.05, 1.0])
-    cam = (vm[1] @ x)[:3]
-    full, small = Ks[1] @ cam, coarse.Ks[1] @ cam
-    torch.testing.assert_close(small[:2] / small[2], full[:2] / full[2] / 3, rtol=1e-6, atol=1e-6)
-    assert views.downscaled(1) is views
-    with pytest.raises(ValueError, match="factor: 5 does not divide"):
-        views.downscaled(5)
-
-
-def test_fit_coarse_epochs_fit_the_downscaled_views_first(tmp_path):
-    """``coarse_epochs = 1``: the first epoch's loss is the L1 of renders at half the resolution against the
-    block-mean views (checked against an independent computation before the step, dense renderer:
-    deterministic), and the second epoch's is at the full resolution; a factor that does not divide the views'
-    size is a config error naming the option."""
-    _, images, vm, Ks, scene = _tiny_problem(n=120, views=4, res=24)
-    rcfg = RenderConfig(renderer="dense")
-    coarse = _views(images, vm, Ks).downscaled(2)
-    with torch.no_grad():
-        pred = render_views(scene, vm, coarse.Ks, 12, 12, rcfg)
-    expected = float((pred - coarse.images).abs().mean())
-
-    def run(epochs: int) -> tuple[SurfelScene, dict[str, float]]:
-        trial = SurfelScene.from_points(scene.cfg, scene.means.detach().clone(), scene.normals.detach().clone(),
-                                        features=0.5)
-        cfg = FitConfig(epochs=epochs, batch=4, learn=_lr(1e-3), lr_decays=0, reposition=False, coarse_epochs=1)
-        out = fit(trial, _views(images, vm, Ks), cfg, rcfg, tmp_path / f"e{epochs}",
-                  log=LogConfig(checkpoint=100, progress=False))
-        return trial, out
-
-    once, out = run(1)
-    assert out["train/loss"] == pytest.approx(expected, rel=1e-5), (out["train/loss"], expected)
-    _, out = run(2)  # its second epoch renders the once-stepped scene (= `once`) at 24x24
-    with torch.no_grad():
-        full = float((render_views(once, vm, Ks, 24, 24, rcfg) - images).abs().mean())
-    assert out["train/loss"] == pytest.approx(full, rel=1e-5), (out["train/loss"], full)
-    with pytest.raises(ConfigError, match="coarse_factor"):
-        fit(scene, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn=_lr(1e-3), reposition=False,
-                                                     coarse_epochs=1, coarse_factor=5), rcfg, tmp_path / "bad",
-            log=LogConfig(checkpoint=100, progress=False))
 
 
 def test_fit_sh_rest_lr_scales_the_higher_bands_step_only(tmp_path):
@@ -358,7 +285,7 @@ def test_fit_sh_rest_lr_scales_the_higher_bands_step_only(tmp_path):
     moved = {}
     for r in (1.0, 0.05):
         scene = SurfelScene.from_points(SceneConfig(channels=12), s0.clone(), n0.clone(), features=start.clone())
-        cfg = FitConfig(epochs=1, batch=4, learn=_lr(1e-2), reposition=False, shading="sh", sh_rest_lr=r)
+        cfg = FitConfig(epochs=1, batch=4, learn=_lr(1e-2), reposition=OFF, shading="sh", sh_rest_lr=r)
         fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / f"r{r}",
             log=LogConfig(checkpoint=100, progress=False))
         moved[r] = scene.features.detach() - start
@@ -382,7 +309,7 @@ def test_fit_max_scale_caps_every_std_dev_from_the_first_render(tmp_path):
     def run(max_scale: float, epochs: int) -> tuple[SurfelScene, dict[str, float]]:
         trial = SurfelScene.from_points(scene.cfg, scene.means.detach().clone(), scene.normals.detach().clone(),
                                         scales=start.clone(), features=0.5)
-        cfg = FitConfig(epochs=epochs, batch=4, learn=_lr(0.05), lr_decays=0, reposition=False, max_scale=max_scale)
+        cfg = FitConfig(epochs=epochs, batch=4, learn=_lr(0.05), lr_decays=0, reposition=OFF, max_scale=max_scale)
         out = fit(trial, _views(images, vm, Ks), cfg, rcfg, tmp_path / f"c{max_scale}-e{epochs}",
                   log=LogConfig(checkpoint=100, progress=False))
         return trial, out
@@ -399,7 +326,7 @@ def test_fit_max_scale_caps_every_std_dev_from_the_first_render(tmp_path):
     assert float(free.scales.detach().max()) > 1.5 * cap
     const = SurfelScene.from_points(SceneConfig(scale=0.1, learn=["means", "features"]), scene.means.detach(), scene.normals.detach(), features=0.5)
     with pytest.raises(ConfigError, match="max_scale"):
-        fit(const, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn={"features": 0.01}, reposition=False,
+        fit(const, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn={"features": 0.01}, reposition=OFF,
                                                      max_scale=0.05), rcfg, tmp_path / "const",
             log=LogConfig(checkpoint=100, progress=False))
 
@@ -412,7 +339,7 @@ def test_fit_anneal_tail_decays_the_rate_geometrically_over_the_last_epochs(tmp_
     earlier versions); a tail longer than the run or a factor outside (0, 1] is a config error naming it."""
     scene = _tiny_problem(n=60, views=4, res=16)[4]
     cfg = FitConfig(epochs=8, batch=4, learn=_lr(0.04), lr_decays=1, anneal_epochs=3, anneal_factor=0.125,
-                    reposition=False)
+                    reposition=OFF)
     t = build(scene, cfg)
     opt, sched = t.optimizers["fit"], t.schedulers["fit"]
     rates = []
@@ -421,7 +348,7 @@ def test_fit_anneal_tail_decays_the_rate_geometrically_over_the_last_epochs(tmp_
         sched.step()
     expected = [0.04] * 4 + [0.02, 0.02 * 0.5, 0.02 * 0.25, 0.02 * 0.125]
     assert rates == pytest.approx(expected, rel=1e-12), rates
-    plain = FitConfig(epochs=12, batch=4, learn=_lr(0.04), lr_decays=3, lr_gamma=0.3, reposition=False)
+    plain = FitConfig(epochs=12, batch=4, learn=_lr(0.04), lr_decays=3, lr_gamma=0.3, reposition=OFF)
     t = build(scene, plain)
     ref_opt = torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=0.04)
     ref = torch.optim.lr_scheduler.MultiStepLR(ref_opt, plain.milestones(), gamma=0.3)
@@ -437,35 +364,3 @@ def test_fit_anneal_tail_decays_the_rate_geometrically_over_the_last_epochs(tmp_
     with pytest.raises(ConfigError, match="anneal_factor"):
         FitConfig(epochs=4, anneal_epochs=2, anneal_factor=0.0)
     FitConfig(epochs=0, anneal_epochs=12)  # no fit (stage 2 from a fitted geometry.ply): nothing to anneal
-
-
-def test_fit_opacity_resets_lower_every_opacity_and_need_learned_opacities(tmp_path):
-    """``opacity_resets = [e]``: after epoch e every opacity is at most ``reset_opacity`` (the next steps start
-    from zeroed moments, so with a tiny opacity rate they stay there), while the same run without the reset
-    keeps them near their start; resets outside 1..epochs-1 or on a scene without learned opacities are
-    config errors naming the option."""
-    _, images, vm, Ks, scene = _tiny_problem(n=120, views=4, res=24)
-    cfg_scene = SceneConfig(opacity=None, learn=["means", "features", "opacities"])
-    rates = {"means": 1e-3, "features": 1e-2, "opacities": 1e-4}
-
-    def run(resets: list[int]) -> SurfelScene:
-        trial = SurfelScene.from_points(cfg_scene, scene.means.detach().clone(), scene.normals.detach().clone(),
-                                        features=0.5, opacities=0.6)
-        cfg = FitConfig(epochs=3, batch=4, learn=rates, lr_decays=0, reposition=False, opacity_resets=resets,
-                        reset_opacity=0.02)
-        fit(trial, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / f"r{resets}",
-            log=LogConfig(checkpoint=100, progress=False))
-        return trial
-
-    reset, free = run([2]), run([])
-    top = float(reset.opacities.detach().max())
-    assert top <= 0.02 * math.exp(1e-3), top
-    assert float(free.opacities.detach().min()) > 0.59
-    with pytest.raises(ConfigError, match="opacity_resets"):
-        FitConfig(epochs=3, opacity_resets=[3])
-    const = SurfelScene.from_points(SceneConfig(learn=["means", "features"]), scene.means.detach(),
-                                    scene.normals.detach(), features=0.5)
-    with pytest.raises(ConfigError, match="opacity_resets"):
-        fit(const, _views(images, vm, Ks), FitConfig(epochs=2, batch=4, learn={"features": 0.01}, reposition=False,
-                                                     opacity_resets=[1]), RenderConfig(renderer="dense"),
-            tmp_path / "const", log=LogConfig(checkpoint=100, progress=False))

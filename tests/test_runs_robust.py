@@ -62,7 +62,7 @@ def _tiny_reconstruct(tmp: Path, epochs: int = 3, name: str = "tiny.yaml") -> Pa
            "init": {"count": 40}, "scene": {"channels": 3, "learn": ["means", "normals", "scales", "features"],
                                            "opacity": 1.0},
            "render": {"renderer": "splat", "samples": 3},
-           "optim": {"epochs": epochs, "batch": 2, "reposition": False},
+           "optim": {"epochs": epochs, "batch": 2, "reposition": {"enabled": False}},
            "log": {"checkpoint": 1, "validate": 0}, "renders": 0}
     path = tmp / name
     path.write_text(yaml.safe_dump(cfg))

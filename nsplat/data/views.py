@@ -5,9 +5,6 @@ import dataclasses
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
-
-from nsplat.cameras import scale_intrinsics
 
 
 @dataclasses.dataclass
@@ -57,21 +54,6 @@ class PosedViews:
         pick = {f: getattr(self, f) for f in ("images", "viewmats", "Ks", "masks", "viewmats_gt")}
         out = {k: (None if v is None else v[idx.to(v.device)]) for k, v in pick.items()}
         return dataclasses.replace(self, names=[self.names[i] for i in idx.tolist()], **out)
-
-    def downscaled(self, factor: int) -> "PosedViews":
-        """The views at ``1/factor`` of the resolution: images ``[B,H/f,W/f,C]`` (and masks) are the means of
-        ``factor × factor`` pixel blocks and ``Ks`` are scaled to match (pixel centres stay at ``+0.5``);
-        ``factor`` 1 returns the views themselves. Raises ``ValueError`` unless ``factor`` divides ``H`` and ``W``."""
-        if not isinstance(factor, int) or factor < 1:
-            raise ValueError(f"factor: expected an int >= 1, got {factor!r}")
-        if factor == 1:
-            return self
-        if self.height % factor or self.width % factor:
-            raise ValueError(f"factor: {factor} does not divide the views' size {self.width}x{self.height}")
-        images = F.avg_pool2d(self.images.permute(0, 3, 1, 2), factor).permute(0, 2, 3, 1).contiguous()
-        masks = None if self.masks is None else F.avg_pool2d(self.masks.float()[:, None], factor)[:, 0]
-        return dataclasses.replace(self, images=images, masks=masks,
-                                   Ks=scale_intrinsics(self.Ks, 1.0 / factor, 1.0 / factor))
 
     def spread(self, count: int) -> "PosedViews":
         """``count`` views evenly spread over the set (all of them when ``count >= len``)."""

@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from nsplat.config import ConfigError, from_dict, require_fields, to_dict
 from nsplat.engine import LogConfig
-from nsplat.fitting import FitConfig
+from nsplat.fitting import FitConfig, RepositionConfig
 from nsplat.render import RenderConfig
 from nsplat.scene import ATTRIBUTES
 from nsplat.sh import MAX_VIEW_DEGREE, view_channels
@@ -112,7 +112,7 @@ class GeometryFitConfig(FitConfig):
         "means": 0.002, "normals": 0.01, "scales": 0.005, "opacities": 0.05, "features": 0.05})
     lr_decays: int = 2
     shading: Literal["none", "sh"] = "none"
-    reposition_every: int = 4
+    reposition: RepositionConfig = dataclasses.field(default_factory=lambda: RepositionConfig(every=4))
 
 
 @dataclasses.dataclass
@@ -186,9 +186,7 @@ class GeometryConfig:
             capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a PLY written by
             :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
             run's ``geometry.ply``) or ``random`` (``max_points`` points uniform in ``bbox``, random
-            normals, grey: the poor start of the time-to-quality study, docs/results.md).
-        init_fraction: keep this random fraction of the hull points (a sparse start; 1: all).
-        init_shift: move every hull point by this many voxels along ``(1, 1, 1)/√3`` (a misplaced start).
+            normals, grey: a start without silhouettes or SfM points).
         ply: path of that PLY (relative: to the repo root).
         bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
         grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
@@ -206,8 +204,6 @@ class GeometryConfig:
     """
 
     init: Literal["hull", "ply", "random", "sfm"] = "hull"
-    init_fraction: float = 1.0
-    init_shift: float = 0.0
     ply: str | None = None
     bbox: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     grid: int = 64
@@ -240,8 +236,6 @@ class GeometryConfig:
                               f"{self.sh_degree} with shading {self.optim.shading!r}")
         if self.init == "ply" and not self.ply:
             raise ConfigError("geometry.ply: required when geometry.init is ply")
-        if not 0.0 < self.init_fraction <= 1.0:
-            raise ConfigError(f"geometry.init_fraction: expected a fraction in (0, 1], got {self.init_fraction}")
         if self.grid < 8:
             raise ConfigError(f"geometry.grid: expected >= 8, got {self.grid}")
         if self.max_points < 1:

@@ -1,11 +1,9 @@
 """Stage 1's initial surfels for task ``neural``: the scene config, and the points (visual hull of the
-training silhouettes, the SfM points of a COLMAP capture, a PLY, or random points in the bounding box;
-the hull optionally thinned or shifted for the poor-start study of docs/results.md), plus, for unmasked
-photos, the background sphere (:mod:`nsplat.background`)."""
+training silhouettes, the SfM points of a COLMAP capture, a PLY, or random points in the bounding box),
+plus, for unmasked photos, the background sphere (:mod:`nsplat.background`)."""
 from __future__ import annotations
 
 import logging
-import math
 
 import torch
 
@@ -28,9 +26,8 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
 
 
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
-    """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels (optionally a random
-    ``init_fraction`` of them, shifted by ``init_shift`` voxels), the filtered SfM points, a PLY, or random
-    points in the box; with ``geometry.background.model: sphere`` the background surfels are appended.
+    """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels, the filtered SfM
+    points, a PLY, or random points in the box; with ``geometry.background.model: sphere`` the background surfels are appended.
     Opacities start at ``geometry.init_opacity``, the SfM fill's at ``geometry.sfm.fill_opacity``."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
@@ -46,10 +43,7 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold,
                          dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
         log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
-        keep = torch.randperm(hp.means.shape[0], generator=torch.Generator().manual_seed(seed))
-        keep = keep[:max(1, round(g.init_fraction * hp.means.shape[0]))].sort().values
-        shift = g.init_shift * hp.voxel / math.sqrt(3.0)
-        means, normals, colours = hp.means[keep] + shift, hp.normals[keep], hp.colours[keep]
+        means, normals, colours = hp.means, hp.normals, hp.colours
     scales = None
     opacities = torch.full((means.shape[0],), g.init_opacity)
     if g.init == "sfm" and g.sfm.fill > 0:                      # the fill rows end the SfM part

@@ -1,4 +1,4 @@
-"""Adaptive density control for the surfel fitter: split, clone and prune on a schedule.
+"""Adaptive density control, a fitter strategy: split, clone and prune on a schedule.
 
 The fitter (:func:`nsplat.fitting.fit`) renders one view per backward; after each one
 :meth:`DensityStats.observe` converts the view's gradient of the loss w.r.t. the point positions into a
@@ -13,18 +13,22 @@ screen-space magnitude ``‖∂L/∂μ₂d‖`` (pixels: the camera-plane part o
 * **prune** surfels whose opacity fell below ``prune_opacity`` or whose std-dev exceeds ``prune_scale``.
 
 The point set is rebuilt with :meth:`nsplat.scene.SurfelScene.gather_` (optimiser state gathered; new
-rows start without momentum, or with their source row's Adam moments under ``moments: inherit``). Growth
-per event is capped by ``max_growth`` and the total by ``max_points``, highest gradients first.
+rows start without momentum, as in 3DGS). Growth per event is capped by ``max_growth`` and the total by
+``max_points``, highest gradients first. Under torchrun the statistics are summed over ranks, so every rank
+takes the same decisions.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Literal
+from typing import Iterable
 
 import torch
 from torch import nn
 
-from nsplat.config import require, require_fields
+from nsplat import distributed
+from nsplat.config import ConfigError, require_fields
+from nsplat.data.views import PosedViews
+from nsplat.fitting.strategy import FitState, Strategy, ViewRender
 from nsplat.ops import tangent_frame
 from nsplat.scene import SurfelScene
 
@@ -47,10 +51,6 @@ class DensifyConfig:
         max_points: never exceed this many points.
         prune_opacity: prune below this opacity (only with per-point opacities; ``0``: never).
         prune_scale: prune points whose largest std-dev exceeds this (world units; ``0``: never).
-        moments: optimiser state of the new rows: ``reset`` (zero moments, as 3DGS) or ``inherit`` (their
-            source row's). With Adam's global step count, zero moments give a new row steps of several times
-            the rate for its first tens of steps (m̂/√v̂ with v̂ ≪ g²), which scatters fresh surfels on a
-            fitted surface; inherited moments step like their source.
     """
 
     enabled: bool = False
@@ -66,13 +66,11 @@ class DensifyConfig:
     max_points: int = 50000
     prune_opacity: float = 0.02
     prune_scale: float = 0.0
-    moments: Literal["reset", "inherit"] = "reset"
 
     def __post_init__(self) -> None:
         require_fields(self, start=">=1", every=">=1", stop=">=0", grad_threshold=">=0", split_size=">=0",
                        children=">=1", shrink=">0", clone_jitter=">=0", max_growth=">=0", max_points=">=1",
                        prune_opacity=">=0", prune_scale=">=0")
-        require(self.moments in ("reset", "inherit"), "moments", "'reset' or 'inherit'", self.moments)
 
     def due(self, epochs_done: int) -> bool:
         """Whether an event runs after ``epochs_done`` epochs."""
@@ -155,7 +153,7 @@ def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generat
     index = torch.cat([stay_idx, clone_idx, child_idx])
     fresh = torch.zeros(index.numel(), dtype=torch.bool, device=device)
     fresh[stay_idx.numel():] = True
-    scene.gather_(index, optimizers, fresh if cfg.moments == "reset" else None)
+    scene.gather_(index, optimizers, fresh)
 
     new_rows = torch.arange(stay_idx.numel(), index.numel(), device=device)
     if new_rows.numel():
@@ -174,3 +172,41 @@ def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generat
     stats.resize_(scene.num_points)
     return {"split": float(split_idx.numel()), "cloned": float(clone_idx.numel()),
             "pruned": float(prune.sum()), "points": float(scene.num_points)}
+
+
+class Densify(Strategy):
+    """Density control as a fitter strategy: per-view statistics after each backward, summed over the step's
+    views (and ranks) after Adam's step, and an event after every due epoch (logs ``densify/<count>``)."""
+
+    def __init__(self, cfg: DensifyConfig) -> None:
+        self.cfg = cfg
+        self.stats: DensityStats | None = None
+        self._step: DensityStats | None = None        # this step's views (this rank's share)
+        self._seen: torch.Tensor | None = None        # ∂L/∂means after the previous view of this step
+
+    def attach(self, scene: SurfelScene, views: PosedViews | None) -> dict[str, nn.Module]:
+        if "means" not in scene.cfg.learn:
+            raise ConfigError("densify.enabled: needs learnable means (the growth criterion is their gradient)")
+        self.stats = DensityStats(scene.num_points, scene.means.dtype, scene.means.device)
+        return {"density": self.stats}
+
+    def after_backward(self, fit: FitState, view: ViewRender) -> None:
+        means = fit.scene.tensor("means")
+        if self._step is None:
+            self._step = DensityStats(fit.scene.num_points, self.stats.grad.dtype, self.stats.grad.device)
+        g = means.grad if self._seen is None else means.grad - self._seen  # this view's own gradient
+        self._seen = means.grad.clone()
+        v = fit.views
+        self._step.observe(g * view.share, means.detach(), v.viewmats[view.index], v.Ks[view.index],
+                           v.width * v.height)
+
+    def after_step(self, fit: FitState, step: int) -> dict[str, float]:
+        local = self._step if self._step is not None else DensityStats(fit.scene.num_points, self.stats.grad.dtype,
+                                                                          self.stats.grad.device)
+        self.stats.add_(distributed.all_reduce_sum(local.grad), distributed.all_reduce_sum(local.views))
+        self._step, self._seen = None, None
+        epochs = fit.epoch_done(step)
+        if epochs is None or not self.cfg.due(epochs):
+            return {}
+        counts = densify(fit.scene, self.stats, self.cfg, fit.generator, [fit.optimizer])
+        return {f"densify/{k}": v for k, v in counts.items()}
