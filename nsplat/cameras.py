@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import torch
+from kornia.geometry.liegroup import So3
 
 #: Flips y and z: OpenGL/Blender camera axes (x right, y up, z backward) ↔ OpenCV.
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
@@ -63,3 +64,31 @@ def sphere_views(count: int, radius: float, seed: int = 0, dtype: torch.dtype = 
     up = torch.where((d[:, 2:].abs() > 0.99), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
                      torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     return look_at(eye, t.expand_as(eye), up).to(dtype)
+
+
+def perturb_viewmats(viewmats: torch.Tensor, rot_deg: float, trans: float,
+                     generator: torch.Generator | None = None) -> torch.Tensor:
+    """Perturb cameras ``[B,4,4]`` by random rotations of exactly ``rot_deg`` degrees (random axes,
+    about the camera centre) and random camera-centre offsets of exactly length ``trans``.
+
+    Returns the perturbed world→camera matrices ``[B,4,4]`` (same dtype/device).
+    """
+    B = viewmats.shape[0]
+    dt = torch.float64
+    axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=generator, dtype=dt), dim=-1)
+    dirs = torch.nn.functional.normalize(torch.randn(B, 3, generator=generator, dtype=dt), dim=-1)
+    dR = So3.exp(axis * math.radians(rot_deg)).matrix()
+    V = viewmats.detach().to(dt).cpu()
+    R, t = V[:, :3, :3], V[:, :3, 3]
+    centre = -(R.transpose(1, 2) @ t[..., None])[..., 0] + trans * dirs
+    R2 = dR @ R
+    out = torch.eye(4, dtype=dt).repeat(B, 1, 1)
+    out[:, :3, :3] = R2
+    out[:, :3, 3] = -(R2 @ centre[..., None])[..., 0]
+    return out.to(viewmats)
+
+
+def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
+    """World positions ``[B, 3]`` of the optical centres of world→camera matrices ``[B,4,4]``."""
+    R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    return -(R.transpose(1, 2) @ t[..., None])[..., 0]

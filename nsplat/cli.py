@@ -35,12 +35,14 @@ import yaml
 from nsplat import distributed
 from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
+from nsplat.data import commands as data_commands
 from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
                            config_differences, lock_holder)
 from nsplat.tasks import TASKS, get_task
+from nsplat.viewer import commands as viewer_commands
 from nsplat.viewer import live
 
 DEFAULT_CONFIG = config_dir() / "default.yaml"
@@ -132,11 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("view", "export"):  # own options: nsplat/viewer/commands.py
-        from nsplat.viewer.commands import main as viewer_main
-        return viewer_main(argv[0], argv[1:])
+        return viewer_commands.main(argv[0], argv[1:])
     if argv and argv[0] == "data":  # own options: nsplat/data/commands.py
-        from nsplat.data.commands import main as data_main
-        return data_main(argv[1:], prog=f"{_prog()} data")
+        return data_commands.main(argv[1:], prog=f"{_prog()} data")
     try:
         args = _parse(argv)
         if args.command == "train":

@@ -1,6 +1,6 @@
-"""Initialisation of a capture without masks: surfels from SfM points (:mod:`nsplat.sfm_init`: outlier
+"""Initialisation of a capture without masks: surfels from SfM points (:mod:`nsplat.tasks.neural.sfm_init`: outlier
 filters, plane-fit normals, neighbour-spacing scales) on known synthetic clouds, and the background
-sphere (:mod:`nsplat.background`: frame, lattice, colours from the photos, near/far)."""
+sphere (:mod:`nsplat.tasks.neural.background`: frame, lattice, colours from the photos, near/far)."""
 from __future__ import annotations
 
 import math
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from nsplat.background import (camera_centres, depth_range, fibonacci_sphere, fit_sphere, project, scene_frame,
-                               sphere_background)
-from nsplat.cameras import look_at
+from nsplat.cameras import camera_centres, look_at
+from nsplat.tasks.neural.background import (depth_range, fibonacci_sphere, fit_sphere, project, scene_frame,
+                                            sphere_background)
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
-from nsplat.sfm_init import fill_box, fill_points, isolated, plane_normals, reliable, sfm_surfels
+from nsplat.tasks.neural.sfm_init import fill_box, fill_points, isolated, plane_normals, reliable, sfm_surfels
 
 
 def _points(xyz: np.ndarray, track: np.ndarray | None = None, error: np.ndarray | None = None) -> SfmPoints:
@@ -110,7 +110,7 @@ def test_scene_frame_finds_the_look_at_point_and_radius():
     centre, radius = scene_frame(V2)
     assert torch.allclose(centre, shift, atol=1e-9)
     assert radius == pytest.approx(5.0, rel=1e-9)
-    assert torch.allclose(camera_centres(V2).mean(0)[:2], shift[:2], atol=1e-9)
+    assert torch.allclose(camera_centres(V2.double()).mean(0)[:2], shift[:2], atol=1e-9)
 
 
 def test_fibonacci_sphere_is_even():

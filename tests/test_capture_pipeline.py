@@ -16,7 +16,8 @@ import pytest
 import torch
 import yaml
 
-from nsplat.background import camera_centres, project, scene_frame
+from nsplat.cameras import camera_centres
+from nsplat.tasks.neural.background import project, scene_frame
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
 from nsplat.data.colmap import load_colmap
@@ -24,10 +25,11 @@ from nsplat.errors import DataError
 from nsplat.data.raytrace import camera_rays, render, shade
 from nsplat.data.procedural import camera_poses, make_scene
 from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
-from nsplat.tasks.neural import Config, load_views
-from nsplat.tasks.neural_capture import prepare, with_capture_render
-from nsplat.sfm_init import fill_box
-from nsplat.tasks.neural_init import _sfm_points, initial_geometry
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.capture import prepare, with_capture_render
+from nsplat.tasks.neural.sfm_init import fill_box
+from nsplat.tasks.neural.geometry import _sfm_points, initial_geometry
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = CaptureSpec(resolution=128, views=24)
@@ -39,7 +41,7 @@ def capture(tmp_path_factory) -> Path:
 
 
 def _centres(views) -> np.ndarray:
-    return camera_centres(views.viewmats).numpy()
+    return camera_centres(views.viewmats.double()).numpy()
 
 
 def test_sfm_registers_every_photo_and_recovers_the_true_cameras(capture):
@@ -206,7 +208,7 @@ def test_without_sfm_points_the_near_plane_comes_from_the_background_sphere(capt
     raw["data"]["capture"].update(sparse="sparse_gt/0", masks="masks")
     raw["geometry"]["background"].update(radius=SPEC.environment / SPEC.radius, centre=[0.0, 0.0, -0.3])
     cfg = with_capture_render(load_config(Config, raw))
-    dist = (camera_centres(prepare(cfg).splits["train"].viewmats) - torch.tensor([0.0, 0.0, -0.3],
+    dist = (camera_centres(prepare(cfg).splits["train"].viewmats.double()) - torch.tensor([0.0, 0.0, -0.3],
                                                                                 dtype=torch.float64)).norm(dim=1)
     assert cfg.render.near == pytest.approx(0.5 * (SPEC.environment - float(dist.max())))
     assert cfg.render.far == pytest.approx(2.0 * (SPEC.environment + float(dist.max())))

@@ -37,7 +37,11 @@ from nsplat.checkpoint import load_checkpoint
 from nsplat.config import load_config
 from nsplat.distributed import shard
 from nsplat.runctx import RunContext
-from nsplat.tasks.neural import Config, build, fit_geometry, load_views, neural_scene_from, train_step
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.geometry import fit_geometry
+from nsplat.tasks.neural.model import neural_scene_from
+from nsplat.tasks.neural.training import build, train_step
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 20  # --dist-timeout of the killed run

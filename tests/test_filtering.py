@@ -1,4 +1,4 @@
-"""The outlier filter (nsplat.filtering) removes planted outliers and keeps the surface."""
+"""The outlier filter (nsplat.tasks.refine.filtering) removes planted outliers and keeps the surface."""
 import math
 
 import pytest
@@ -6,7 +6,7 @@ import torch
 
 from nsplat.cameras import intrinsics, look_at
 from nsplat.config import ConfigError
-from nsplat.filtering import ErrorAccumulator, FilterConfig, improbable, point_errors
+from nsplat.tasks.refine.filtering import ErrorAccumulator, FilterConfig, improbable, point_errors
 from nsplat.ops import splat_dense
 
 

@@ -1,10 +1,13 @@
 """The house rules of the source tree, checked on the files themselves (nothing is imported).
 
-* The viewer depends on the tasks, never the reverse: no module under ``nsplat/tasks/`` and not
-  ``nsplat/fitting.py`` imports ``nsplat.viewer`` (at module level or inside a function). Tasks build
+* The package's modules (``nsplat/``, ``ops/`` and ``models/``, installed as ``nsplat.ops``/``nsplat.models``)
+  import each other without a cycle, and only at module level (no import inside a function to dodge one).
+* The viewer depends on the tasks, never the reverse: no module under ``nsplat/tasks/`` or
+  ``nsplat/fitting/`` imports ``nsplat.viewer`` (at module level or inside a function). Tasks build
   their views with :mod:`nsplat.view_model`; the viewer reaches them through the task registry.
 * No Python module of the package (``nsplat/``, ``ops/``, ``models/``) is longer than 450 lines.
-* Tests import the package, never a script of ``benchmarks/``.
+* Tests import the package and the shared modules of the ``benchmarks`` package (``benchmarks.allocation``),
+  never a benchmark script (a module that runs as ``python -m benchmarks.<name>``).
 """
 from __future__ import annotations
 
@@ -15,6 +18,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_LINES = 450
+#: Source folder → the package it installs as (pyproject.toml ``package-dir``).
+PACKAGES = {"nsplat": "nsplat", "ops": "nsplat.ops", "models": "nsplat.models"}
 
 
 def _imported_modules(path: Path) -> list[tuple[int, str]]:
@@ -33,9 +38,131 @@ def _viewer_imports(path: Path) -> list[tuple[int, str]]:
             if name == "nsplat.viewer" or name.startswith("nsplat.viewer.")]
 
 
+def _package_modules(root: Path = ROOT) -> dict[str, Path]:
+    """Dotted name → file of every module of the installed package."""
+    out = {}
+    for folder, package in PACKAGES.items():
+        for f in sorted((root / folder).rglob("*.py")):
+            parts = [p for p in f.relative_to(root / folder).with_suffix("").parts if p != "__init__"]
+            out[".".join([package, *parts])] = f
+    return out
+
+
+def _module_level_imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The package modules that module ``name`` (file ``path``) imports in its top-level statements (also
+    under ``if``/``try``): ``from a import b`` counts as ``a.b`` when that is a module, else as ``a``;
+    relative imports are resolved against the module's package."""
+    out = set()
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    todo = list(ast.parse(path.read_text(), str(path)).body)
+    while todo:
+        node = todo.pop()
+        if isinstance(node, (ast.If, ast.Try)):
+            todo += node.body + node.orelse + getattr(node, "finalbody", []) + \
+                [n for h in getattr(node, "handlers", []) for n in h.body]
+        elif isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name in modules}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = ".".join(anchor + ([node.module] if node.module else []))
+            if base not in modules:
+                continue
+            subs = {f"{base}.{a.name}" for a in node.names} & set(modules)
+            out |= subs | ({base} if len(subs) < len(node.names) else set())
+    return out
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module, and modules importing themselves."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1 or v in graph[v]:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def _graph(root: Path = ROOT) -> dict[str, set[str]]:
+    modules = _package_modules(root)
+    return {name: _module_level_imports(name, path, modules) for name, path in modules.items()}
+
+
+def test_the_package_has_no_import_cycle():
+    graph = _graph()
+    assert len(graph) > 50 and sum(map(len, graph.values())) > 100  # the scan sees the package
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles among the package's modules:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_package_modules_are_imported_at_module_level_only():
+    modules = _package_modules()
+    bad = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        top = {id(n) for n in _walk_top(tree.body)}
+        bad += [f"{path.relative_to(ROOT)}:{n.lineno}" for n in ast.walk(tree)
+                if isinstance(n, (ast.Import, ast.ImportFrom)) and id(n) not in top
+                and any(m.startswith("nsplat") for m in _names_of(n))]
+    assert not bad, "imports of the package inside functions or classes (a cycle dodged?):\n" + "\n".join(bad)
+
+
+def _walk_top(body: list[ast.stmt]) -> list[ast.stmt]:
+    """Top-level statements, including those under module-level ``if``/``try``."""
+    out = []
+    for node in body:
+        out.append(node)
+        if isinstance(node, (ast.If, ast.Try)):
+            out += _walk_top(node.body + node.orelse + getattr(node, "finalbody", []) +
+                             [n for h in getattr(node, "handlers", []) for n in h.body])
+    return out
+
+
+def _names_of(node: ast.Import | ast.ImportFrom) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    return [node.module or ""] if node.level == 0 else ["nsplat (relative)"]
+
+
+def test_the_cycle_check_finds_a_planted_cycle(tmp_path):
+    for folder in PACKAGES:
+        (tmp_path / folder).mkdir()
+    (tmp_path / "nsplat" / "__init__.py").write_text("")
+    (tmp_path / "nsplat" / "a.py").write_text("from nsplat.b import f\n")
+    (tmp_path / "nsplat" / "b.py").write_text("import torch\nif True:\n    from nsplat import c\n")
+    (tmp_path / "nsplat" / "c.py").write_text("from nsplat.a import g\n")
+    (tmp_path / "ops" / "__init__.py").write_text("from .d import h\n")
+    (tmp_path / "ops" / "d.py").write_text("from . import e\n")
+    (tmp_path / "ops" / "e.py").write_text("import nsplat.ops.d\n")
+    assert _cycles(_graph(tmp_path)) == [["nsplat.a", "nsplat.b", "nsplat.c"], ["nsplat.ops.d", "nsplat.ops.e"]]
+
+
 def test_tasks_and_fitter_do_not_import_the_viewer():
-    files = sorted((ROOT / "nsplat" / "tasks").glob("*.py")) + [ROOT / "nsplat" / "fitting.py"]
-    assert len(files) > 2
+    files = sorted((ROOT / "nsplat" / "tasks").rglob("*.py")) + sorted((ROOT / "nsplat" / "fitting").glob("*.py"))
+    assert len(files) > 10
     bad = [f"{f.relative_to(ROOT)}:{line}: {name}" for f in files for line, name in _viewer_imports(f)]
     assert not bad, "the viewer depends on the tasks, never the reverse:\n" + "\n".join(bad)
 
@@ -56,11 +183,23 @@ def test_no_module_exceeds_the_line_limit(folder):
     assert not long, f"modules over {MAX_LINES} lines (split them into modules named for what they do): {long}"
 
 
+def _is_script(path: Path) -> bool:
+    """Whether a module runs as a program (has an ``if __name__ == "__main__":`` block)."""
+    return any(isinstance(n, ast.If) and "__main__" in ast.unparse(n.test) for n in ast.parse(path.read_text()).body)
+
+
 def test_tests_do_not_load_benchmark_scripts():
     bad = []
     for f in sorted(p for p in (ROOT / "tests").glob("*.py") if p.name != Path(__file__).name):
         tree = ast.parse(f.read_text(), str(f))
-        bad += [f"{f.name}:{line}: {name}" for line, name in _imported_modules(f) if name.split(".")[0] == "benchmarks"]
+        for line, name in _imported_modules(f):
+            parts = name.split(".")
+            if parts[0] != "benchmarks":
+                continue
+            target = next((ROOT.joinpath(*parts[:k]).with_suffix(".py") for k in range(len(parts), 1, -1)
+                           if ROOT.joinpath(*parts[:k]).with_suffix(".py").is_file()), None)
+            if target is None or _is_script(target):
+                bad.append(f"{f.name}:{line}: {name}")
         bad += [f"{f.name}:{n.lineno}: path into benchmarks/" for n in ast.walk(tree)
                 if isinstance(n, ast.Constant) and n.value == "benchmarks"]
-    assert not bad, "tests import the package (move the code into nsplat/), not benchmark scripts: " + str(bad)
+    assert not bad, "tests import the package or the benchmarks' shared modules, not benchmark scripts: " + str(bad)

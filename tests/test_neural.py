@@ -20,7 +20,12 @@ from nsplat.config import ConfigError, load_config
 from nsplat.metrics_image import lpips_status
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
-from nsplat.tasks.neural import Config, build, fit_geometry, load_views, neural_scene_from, render_split, train_step
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.evaluation import render_split
+from nsplat.tasks.neural.geometry import fit_geometry
+from nsplat.tasks.neural.model import neural_scene_from
+from nsplat.tasks.neural.training import build, train_step
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -178,7 +183,7 @@ def test_late_gan_starts_at_its_fraction_with_its_own_schedule(cache, tmp_path):
 def test_eval_draws_average_independent_feature_images(cache, tmp_path):
     """``eval.draws``: an evaluation render's feature image is the mean of that many op draws (draw j with the
     seeds shifted by j·DRAW_STRIDE; draw 0 is the plain render), and the U-Net shades the mean."""
-    from nsplat.tasks.neural_model import DRAW_STRIDE
+    from nsplat.tasks.neural.model import DRAW_STRIDE
 
     raw = _tiny(cache)
     raw["eval"]["draws"] = 3
@@ -208,7 +213,7 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
     j·DRAW_STRIDE), which has less sampling noise than one draw; ``draws`` < 1 is an error naming it."""
     from nsplat.metrics_image import psnr
     from nsplat.render import DRAW_STRIDE, render_views
-    from nsplat.tasks.neural_eval import evaluate_geometry
+    from nsplat.tasks.neural.evaluation import evaluate_geometry
 
     raw = _tiny(cache)
     raw["eval"]["draws"] = 3

@@ -55,7 +55,7 @@ def test_splatter_settings_and_keywords_are_one_thing():
 
 def test_neural_eval_render_overrides_the_training_render_section():
     """``eval.render`` (task neural) overrides the top-level render settings for evaluation only."""
-    from nsplat.tasks.neural_config import Config
+    from nsplat.tasks.neural.config import Config
 
     cfg = from_dict(Config, {"render": {"samples": 8, "estimator": "paper"}, "eval": {"render": {"samples": 32}}})
     assert cfg.render.samples == 8
@@ -69,7 +69,7 @@ def test_neural_eval_render_overrides_the_training_render_section():
 
 def test_render_split_renders_with_the_eval_settings_and_restores_training_ones():
     from nsplat.data.views import PosedViews
-    from nsplat.tasks.neural import render_split
+    from nsplat.tasks.neural.evaluation import render_split
 
     class Probe(torch.nn.Module):
         def __init__(self) -> None:

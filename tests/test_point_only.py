@@ -13,7 +13,7 @@ import yaml
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.sh import sh_view_basis, view_channels, view_colour
-from nsplat.tasks.neural import Config
+from nsplat.tasks.neural.config import Config
 from tests.test_neural import _tiny
 
 REPO = Path(__file__).resolve().parents[1]
@@ -108,8 +108,8 @@ def test_lego_point_only_config_is_lego_stage_one_twice_as_long():
 
 def test_random_start_draws_max_points_in_the_box(tmp_path):
     """``geometry.init: random`` draws ``max_points`` points in ``geometry.bbox`` instead of the hull's."""
-    from nsplat.tasks.neural import load_views
-    from nsplat.tasks.neural_init import initial_geometry
+    from nsplat.tasks.neural.data import load_views
+    from nsplat.tasks.neural.geometry import initial_geometry
 
     def start(**geometry) -> torch.Tensor:
         raw = _tiny(tmp_path / "cache")

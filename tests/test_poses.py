@@ -1,4 +1,4 @@
-"""Camera corrections (nsplat.poses): SE(3) updates, perturbations, errors, and recovery of a known
+"""Camera corrections (nsplat.tasks.refine.poses): SE(3) updates, perturbations, errors, and recovery of a known
 small pose perturbation by gradient descent through the renderer on a tiny scene."""
 import math
 
@@ -7,8 +7,9 @@ import torch
 
 from nsplat.cameras import intrinsics, look_at
 from nsplat.ops import splat_dense
-from nsplat.poses import (CameraCorrection, align_to_reference, camera_centres, perturb_viewmats, pose_errors,
-                          pose_report, relative_pose_errors)
+from nsplat.cameras import camera_centres, perturb_viewmats
+from nsplat.tasks.refine.poses import (CameraCorrection, align_to_reference, pose_errors, pose_report,
+                                       relative_pose_errors)
 
 
 def _scene():

@@ -12,7 +12,8 @@ import torch
 from nsplat.config import load_config, read_yaml
 from nsplat.data.paths import data_root
 from nsplat.data.pointclouds import DSS_SHAPES, load_dss_shape
-from nsplat.tasks.neural import Config, load_views, scene_root
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views, scene_root
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -32,11 +32,10 @@ from pathlib import Path
 
 import torch
 
-from nsplat.cameras import intrinsics_from_fov, look_at
+from nsplat.cameras import intrinsics_from_fov, look_at, perturb_viewmats
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
 from nsplat.data.raytrace import Box, Material, Plane, Primitive, albedo, camera_rays, intersect
-from nsplat.poses import perturb_viewmats
 from nsplat.sh import sh_shade
 
 log = logging.getLogger(__name__)

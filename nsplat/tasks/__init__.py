@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import importlib
 from types import ModuleType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 from nsplat.config import ConfigError
 from nsplat.runctx import RunContext
-
-if TYPE_CHECKING:
-    from nsplat.view_model import ViewModel
+from nsplat.view_model import ViewModel
 
 TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",

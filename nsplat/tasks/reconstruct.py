@@ -18,6 +18,7 @@ from typing import Any
 import imageio.v3 as iio
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 
 from nsplat import distributed, fitting
 from nsplat import render as gateway
@@ -27,7 +28,7 @@ from nsplat.data.dss import DataConfig, cache_file, gt_views, view_cameras
 from nsplat.data.pointclouds import PointCloud, load_dss_shape
 from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
 from nsplat.fitting import FitConfig, fit
-from nsplat.metrics import point_cloud_distances
+from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
 from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
@@ -180,17 +181,10 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
 def write_point_plot(path: Path, points: torch.Tensor, pc: PointCloud) -> Path:
     """Scatter plot ``path`` of the GT cloud and ``points [N,3]`` (coloured by distance to the GT, in units
     of the GT bounding-box diagonal, clipped at 0.1), from two directions."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from nsplat.metrics import bbox_diagonal, nn_distances
-
     gt = pc.points.double().numpy()
     pred = points.double().numpy()
     dist = nn_distances(pred, gt) / bbox_diagonal(gt)
-    fig = plt.figure(figsize=(7, 6))
+    fig = Figure(figsize=(7, 6))
     lo, hi = gt.min(0), gt.max(0)
     pad = 0.25 * (hi - lo)
     for i, (elev, azim) in enumerate(((20, -60), (20, 120))):
@@ -210,7 +204,6 @@ def write_point_plot(path: Path, points: torch.Tensor, pc: PointCloud) -> Path:
     fig.subplots_adjust(left=0.0, right=0.85, bottom=0.0, top=0.95, wspace=0.0, hspace=0.0)
     fig.colorbar(sc, ax=fig.axes, shrink=0.5, label="distance to GT / diagonal")
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

@@ -18,7 +18,9 @@ from pathlib import Path
 import torch
 
 from nsplat.export import FORMATS, export
+from nsplat.viewer.model import RenderSettings
 from nsplat.viewer.runs import RunError, load_run
+from nsplat.viewer.server import serve
 
 log = logging.getLogger("nsplat")
 
@@ -64,9 +66,6 @@ def main(command: str, argv: list[str]) -> int:
         path = export(model, args.format, args.out or args.run / "export" / f"surfels.{args.format}")
         log.info("wrote %s (%d surfels, %d features)", path, model.num_points, model.features.shape[1])
         return 0
-    from nsplat.viewer.model import RenderSettings
-    from nsplat.viewer.server import serve
-
     try:
         settings = RenderSettings(samples=args.samples, eps=args.eps, resolution=args.resolution)
     except ValueError as exc:

@@ -27,6 +27,7 @@ from typing import Callable, Iterator
 from nsplat.config import ConfigError
 from nsplat.view_model import ViewModel
 from nsplat.viewer.model import RenderSettings
+from nsplat.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,6 @@ class LiveViewer:
     """The live-view session (a :class:`~nsplat.viewer.server.ViewerServer` without its own render thread)."""
 
     def __init__(self, opts: LiveOptions) -> None:
-        from nsplat.viewer.server import ViewerServer
-
         self.opts = opts
         self.server = ViewerServer(None, opts.host, opts.port,
                                    RenderSettings(samples=opts.samples, resolution=opts.resolution), thread=False)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import socket
 import threading
 import time
 
@@ -272,8 +273,6 @@ class ViewerServer:
 
 def free_port(host: str = "127.0.0.1") -> int:
     """A currently free TCP port on ``host``."""
-    import socket
-
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])

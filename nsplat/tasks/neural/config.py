@@ -1,11 +1,11 @@
-"""Configuration of the ``neural`` task (see :mod:`nsplat.tasks.neural`)."""
+"""Configuration of the ``neural`` task (see :mod:`nsplat.tasks.neural`): one dataclass per section."""
 from __future__ import annotations
 
 import dataclasses
 from typing import Any, Literal
 
 from nsplat.config import ConfigError, from_dict, require_fields, to_dict
-from nsplat.engine import LogConfig
+from nsplat.engine import LogConfig, op_seed
 from nsplat.fitting import FitConfig, RepositionConfig
 from nsplat.render import RenderConfig
 from nsplat.scene import ATTRIBUTES
@@ -33,7 +33,7 @@ class ProceduralConfig:
 
 @dataclasses.dataclass
 class CaptureConfig:
-    """A COLMAP capture (``data.source: colmap``; :mod:`nsplat.tasks.neural_capture`, docs/capture.md).
+    """A COLMAP capture (``data.source: colmap``; :mod:`nsplat.tasks.neural.capture`, docs/capture.md).
 
     Attributes:
         downscale: photos at ``1/downscale`` (read from ``<images>_<downscale>/`` when it exists).
@@ -44,7 +44,7 @@ class CaptureConfig:
         normalize: move the world so the cameras' common look-at point is the origin and scale it so their
             median distance to it is ``radius`` (the units the learning rates were set in).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
-            sphere; :func:`nsplat.tasks.neural_capture.with_capture_render`).
+            sphere; :func:`nsplat.tasks.neural.capture.with_capture_render`).
         cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
     """
 
@@ -117,7 +117,7 @@ class GeometryFitConfig(FitConfig):
 
 @dataclasses.dataclass
 class SfmInitConfig:
-    """``geometry.init: sfm`` (:func:`nsplat.sfm_init.sfm_surfels`): outlier filters and the plane fit.
+    """``geometry.init: sfm`` (:func:`nsplat.tasks.neural.sfm_init.sfm_surfels`): outlier filters and the plane fit.
 
     Attributes:
         min_track: keep points seen in at least this many images. max_error: and with a mean
@@ -125,7 +125,7 @@ class SfmInitConfig:
             the isolation filter. std_ratio: isolation threshold in standard deviations.
         background_points: also make surfels of the points beyond 1.5 camera distances from the cameras'
             look-at point (the background) when a background sphere is on (``false``: the sphere alone).
-        fill: add this many random points (:func:`nsplat.sfm_init.fill_points`; ``0``: none) inside
+        fill: add this many random points (:func:`nsplat.tasks.neural.sfm_init.fill_points`; ``0``: none) inside
             ``fill_box``: ``points`` (the box of the kept SfM surfels, grown by ``fill_margin`` times its
             size per side) or ``bbox`` (``geometry.bbox``), kept where ``fill_seen`` of the training
             views see them, with opacity ``fill_opacity`` (low, as 3DGS starts all points: a random point in
@@ -154,7 +154,7 @@ class SfmInitConfig:
 
 @dataclasses.dataclass
 class BackgroundConfig:
-    """What stands behind the scene in unmasked photos (:mod:`nsplat.background`).
+    """What stands behind the scene in unmasked photos (:mod:`nsplat.tasks.neural.background`).
 
     Attributes:
         model: ``none`` (the constant ``data.background``: masked NeRF-synthetic scenes) or ``sphere``
@@ -430,6 +430,10 @@ class Config:
     def view_rest(self) -> int:
         """Feature channels of the higher SH coefficients the stage-2 points carry (``neural.view_colour``)."""
         return self.geometry.channels() - 3 if self.neural.view_colour else 0
+
+    def eval_seed(self) -> int:
+        """Op seed of every evaluation render (validation, test, orbit, the viewer): fixed by ``seed``."""
+        return op_seed(self.seed, "eval")
 
     def eval_render(self) -> RenderConfig:
         """The render settings of evaluation: ``render`` with the ``eval.render`` overrides applied."""

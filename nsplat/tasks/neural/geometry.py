@@ -1,18 +1,31 @@
-"""Stage 1's initial surfels for task ``neural``: the scene config, and the points (visual hull of the
-training silhouettes, the SfM points of a COLMAP capture, a PLY, or random points in the bounding box),
-plus, for unmasked photos, the background sphere (:mod:`nsplat.background`)."""
+"""Stage 1 of the neural task: the initial surfels (visual hull of the training silhouettes, the SfM points of
+a COLMAP capture, a PLY, or random points in the bounding box, plus, for unmasked photos, the background
+sphere of :mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
+import time
+from typing import Any
 
 import torch
 
+from nsplat import distributed
+from nsplat import render as gateway
+from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import hull_points
+from nsplat.engine import write_json
+from nsplat.fitting import fit
+from nsplat.metrics_image import psnr
+from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
-from nsplat.tasks.neural_config import Config
+from nsplat.tasks.neural.background import sphere_background
+from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.sfm_init import fill_box, fill_points, sfm_surfels
 
 log = logging.getLogger(__name__)
 
@@ -49,9 +62,6 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     if g.init == "sfm" and g.sfm.fill > 0:                      # the fill rows end the SfM part
         opacities[means.shape[0] - g.sfm.fill:] = g.sfm.fill_opacity
     if g.background.model == "sphere":
-        from nsplat.background import sphere_background
-        from nsplat.tasks.neural_capture import background_sphere
-
         centre, radius = background_sphere(cfg)
         bg = sphere_background(train.to("cpu"), centre, radius, g.background.points)
         log.info("background sphere: %d points, radius %.3f", bg[0].shape[0], radius)
@@ -74,12 +84,8 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
     """``(means, normals, colours, spacing)`` of the capture's filtered SfM points (``geometry.sfm``), at most
     ``geometry.max_points`` of them (a random subset drawn with ``seed``). With a background sphere and
     ``geometry.sfm.background_points: false`` only the scene's points are used
-    (:func:`nsplat.tasks.neural_capture.scene_points`; all of them when fewer than ``2·geometry.sfm.k``
+    (:func:`nsplat.tasks.neural.capture.scene_points`; all of them when fewer than ``2·geometry.sfm.k``
     lie in the scene): the distant ones are the background, which the sphere models."""
-    from nsplat.background import camera_centres
-    from nsplat.sfm_init import sfm_surfels
-    from nsplat.tasks.neural_capture import prepare, scene_points
-
     points = prepare(cfg).points
     if cfg.geometry.background.model == "sphere" and not cfg.geometry.sfm.background_points:
         near = scene_points(cfg)
@@ -93,7 +99,7 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
                           f"{0 if points is None else len(points)}")
     s = cfg.geometry.sfm
     try:
-        sf = sfm_surfels(points, camera_centres(train.viewmats.cpu()), min_track=s.min_track, max_error=s.max_error,
+        sf = sfm_surfels(points, camera_centres(train.viewmats.cpu().double()), min_track=s.min_track, max_error=s.max_error,
                          k=s.k, std_ratio=s.std_ratio)
     except ValueError as exc:
         raise ConfigError(f"geometry.sfm: {exc}") from exc
@@ -109,10 +115,8 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
 def _with_fill(cfg: Config, train: PosedViews, sfm: tuple[torch.Tensor, ...], gen: torch.Generator
                ) -> tuple[torch.Tensor, ...]:
     """The SfM surfels ``sfm`` = ``(means [N,3], normals [N,3], colours [N,3], spacing [N])`` followed by
-    ``geometry.sfm.fill`` random points (:func:`nsplat.sfm_init.fill_points`) in the configured box; the
+    ``geometry.sfm.fill`` random points (:func:`nsplat.tasks.neural.sfm_init.fill_points`) in the configured box; the
     new points' spacing is their 3-NN spacing among all ``N + fill`` points."""
-    from nsplat.sfm_init import fill_box, fill_points
-
     s, g = cfg.geometry.sfm, cfg.geometry
     if s.fill_box == "points":
         lo, hi = fill_box(sfm[0], s.fill_margin)
@@ -135,3 +139,39 @@ def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torc
     means = lo + (hi - lo) * torch.rand(count, 3, generator=g)
     normals = torch.nn.functional.normalize(torch.randn(count, 3, generator=g), dim=-1)
     return means, normals, torch.full((count, 3), 0.5)
+
+
+def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedViews | None = None) -> SurfelScene:
+    """Stage 1: initial points, fitted to ``train`` with the op (resumable); writes ``geometry.ply``.
+
+    With ``geometry.log.validate > 0`` and ``val``, the stage-1 surfels are rendered on ``val``
+    (``eval.val_views`` of them, evaluation settings, the mean of ``eval.draws`` draws) at that cadence
+    and ``geometry_history.json`` records ``{step, elapsed_s, val_psnr}``; ``elapsed_s`` is the stage's
+    wall time so far, from before the initial points, without the validation renders (the time-to-quality
+    curve of stage 1)."""
+    t0, validating = time.perf_counter(), 0.0
+    scene = initial_geometry(cfg, train, ctx.seed)
+    g = cfg.geometry
+    history: list[dict[str, float]] = []
+    val_sub = val.spread(cfg.eval.val_views) if val is not None else None
+
+    def validate(done: int, writer: Any) -> dict[str, float]:
+        nonlocal validating
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            rgb = gateway.render_views(scene, val_sub.viewmats, val_sub.Ks, val_sub.width, val_sub.height,
+                                       cfg.eval_render(), seed=cfg.eval_seed(), shading=g.optim.shading,
+                                       background=val_sub.background, draws=cfg.eval.draws).clamp(0, 1)
+        value = float(psnr(rgb, val_sub.images).mean())
+        history.append({"step": done, "elapsed_s": t1 - t0 - validating, "val_psnr": value})
+        write_json(ctx.run_dir / "geometry_history.json", {"history": history})
+        validating += time.perf_counter() - t1
+        return {"psnr/val": value}
+
+    if g.optim.epochs > 0:
+        fit(scene, train, g.optim, cfg.render, ctx.run_dir / "geometry", seed=ctx.seed, resume=ctx.resume,
+            log=dataclasses.replace(g.log, progress=cfg.log.progress), background=train.background,
+            desc="geometry", validate=validate if val_sub is not None and g.log.validate > 0 else None)
+    if distributed.is_main():
+        scene.save_ply(ctx.run_dir / "geometry.ply")
+    return scene

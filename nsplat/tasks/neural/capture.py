@@ -11,24 +11,24 @@ undistorted, downscaled, every 8th image by name held out as ``test``) and prepa
   scaled so that the median camera distance to it is ``radius`` (a similarity: images are unchanged);
   the SfM points move with it;
 * **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
-  (:func:`nsplat.background.depth_range`: half the smallest depth, twice the farthest reach).
+  (:func:`nsplat.tasks.neural.background.depth_range`: half the smallest depth, twice the farthest reach).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-from typing import TYPE_CHECKING
 
 import torch
 
-from nsplat.background import camera_centres, depth_range, scene_frame
+from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError, to_dict
+from nsplat.data.capture import SfmPoints
+from nsplat.data.colmap import load_colmap
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
-
-if TYPE_CHECKING:
-    from nsplat.data.capture import SfmPoints
-    from nsplat.tasks.neural_config import Config
+from nsplat.tasks.neural.background import depth_range, fit_sphere, scene_frame
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.sfm_init import reliable
 
 
 @dataclasses.dataclass
@@ -41,7 +41,7 @@ class PreparedCapture:
     """
 
     splits: dict[str, PosedViews]
-    points: "SfmPoints | None"
+    points: SfmPoints | None
 
 
 _CACHE: dict[str, PreparedCapture] = {}
@@ -54,13 +54,11 @@ def _transform(views: PosedViews, centre: torch.Tensor, s: float) -> PosedViews:
     return dataclasses.replace(views, viewmats=V.float())
 
 
-def prepare(cfg: "Config") -> PreparedCapture:
+def prepare(cfg: Config) -> PreparedCapture:
     """The configured capture, loaded and prepared once per process (keyed by ``cfg.data``)."""
     key = json.dumps(to_dict(cfg.data), sort_keys=True)
     if key in _CACHE:
         return _CACHE[key]
-    from nsplat.data.colmap import load_colmap
-
     c = cfg.data.capture
     cap = load_colmap(resolve(cfg.data.root or ""), downscale=c.downscale, holdout_every=c.holdout_every,
                       images=c.images, sparse=c.sparse, masks=c.masks,
@@ -84,14 +82,14 @@ def prepare(cfg: "Config") -> PreparedCapture:
     return _CACHE[key]
 
 
-def capture_views(cfg: "Config", split: str, device: torch.device) -> PosedViews:
+def capture_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
     """One split (``train``, ``val`` or ``test``) of the configured capture on ``device``."""
     return prepare(cfg).splits[split].to(device)
 
 
-def with_capture_render(cfg: "Config") -> "Config":
+def with_capture_render(cfg: Config) -> Config:
     """``cfg`` with ``render.near/far`` set when ``data.capture.near_far`` applies to a COLMAP source:
-    from the SfM points' depths (:func:`nsplat.background.depth_range`) when the model has points, else,
+    from the SfM points' depths (:func:`nsplat.tasks.neural.background.depth_range`) when the model has points, else,
     with a background sphere, ``near`` half the smallest camera-to-sphere distance and ``far`` twice the
     largest; otherwise ``cfg`` itself. Without a near plane the sphere's points beside a camera (depth
     near 0) would be splatted over the whole image."""
@@ -99,7 +97,7 @@ def with_capture_render(cfg: "Config") -> "Config":
         return cfg
     prep = prepare(cfg)
     bg = cfg.geometry.background
-    centres = camera_centres(prep.splits["train"].viewmats)
+    centres = camera_centres(prep.splits["train"].viewmats.double())
     if prep.points is not None and len(prep.points) > 0:
         _, radius = scene_frame(prep.splits["train"].viewmats)
         far_radius = radius
@@ -125,7 +123,7 @@ FAR_POINTS = 1.5
 MIN_FAR_POINTS = 20
 
 
-def scene_points(cfg: "Config") -> "SfmPoints | None":
+def scene_points(cfg: Config) -> SfmPoints | None:
     """The SfM points within :data:`FAR_POINTS` camera distances of the cameras' look-at point (the scene;
     the rest are the background), or ``None`` when the model has no points.
 
@@ -139,20 +137,17 @@ def scene_points(cfg: "Config") -> "SfmPoints | None":
                                track_length=points.track_length[near], error=points.error[near])
 
 
-def background_sphere(cfg: "Config") -> tuple[torch.Tensor, float]:
+def background_sphere(cfg: Config) -> tuple[torch.Tensor, float]:
     """``(centre [3] float64, radius)`` of the background sphere in the training frame.
 
     ``geometry.background.radius`` (camera distances) and ``centre`` when given. Otherwise from the
     reliable SfM points farther than :data:`FAR_POINTS` camera distances from the cameras' look-at point
-    (the background): the least-squares sphere through them (:func:`nsplat.background.fit_sphere`; with a
+    (the background): the least-squares sphere through them (:func:`nsplat.tasks.neural.background.fit_sphere`; with a
     given centre, their median distance from it), as long as it encloses every camera with a margin of
     half a camera distance; else, or with fewer than :data:`MIN_FAR_POINTS` such points, a sphere about the
     look-at point (or the given centre) through the 98th percentile of all reliable points' distances,
     times 1.05, and at least 1.5 camera distances.
     """
-    from nsplat.background import fit_sphere
-    from nsplat.sfm_init import reliable
-
     bg = cfg.geometry.background
     views = prepare(cfg).splits["train"].viewmats
     look_at, radius = scene_frame(views)
@@ -168,7 +163,7 @@ def background_sphere(cfg: "Config") -> tuple[torch.Tensor, float]:
     far = xyz[(xyz - look_at).norm(dim=1) > FAR_POINTS * radius]
     if len(far) >= MIN_FAR_POINTS:
         c, r = fit_sphere(far) if bg.centre is None else (centre, float((far - centre).norm(dim=1).median()))
-        if r - float((camera_centres(views) - c).norm(dim=1).max()) > 0.5 * radius:
+        if r - float((camera_centres(views.double()) - c).norm(dim=1).max()) > 0.5 * radius:
             return c, r
     dist = (xyz - centre).norm(dim=1)
     return centre, max(1.05 * float(torch.quantile(dist, 0.98)), FAR_POINTS * radius)

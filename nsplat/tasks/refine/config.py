@@ -7,9 +7,9 @@ from typing import Literal
 from nsplat.config import ConfigError
 from nsplat.data.room import RoomSpec
 from nsplat.engine import LogConfig
-from nsplat.filtering import FilterConfig
 from nsplat.render import RenderConfig
 from nsplat.scene import SceneConfig
+from nsplat.tasks.refine.filtering import FilterConfig
 
 
 @dataclasses.dataclass
@@ -68,14 +68,14 @@ class ShadingConfig:
 
 @dataclasses.dataclass
 class PoseConfig:
-    """Camera corrections (see :class:`nsplat.poses.CameraCorrection`)."""
+    """Camera corrections (see :class:`nsplat.tasks.refine.poses.CameraCorrection`)."""
 
     learn: bool = True
     learn_focal: bool = False
     shared_focal: bool = True
     frozen: list[int] = dataclasses.field(default_factory=list)
     #: rotation pivot of the corrections: ``scene`` (the initial cloud's median depth on each
-    #: camera's optical axis; decouples rotation from translation, see :mod:`nsplat.poses`) or
+    #: camera's optical axis; decouples rotation from translation, see :mod:`nsplat.tasks.refine.poses`) or
     #: ``centre`` (the optical centre).
     pivot: Literal["scene", "centre"] = "centre"
 

@@ -23,8 +23,8 @@ decoupled directions, which diagonal preconditioning handles. ``exp`` is kornia'
 the renderer reach ξ through ``viewmats``. The optional focal correction multiplies ``fx, fy`` by
 ``exp(φ)`` (one ``φ`` per camera, or one shared by all), reaching ``Ks`` through the op's projection.
 
-Also here: random pose perturbations of a given size and rotation/translation pose errors, used to
-build and score refinement benchmarks. When the scene is learnable too, poses are only determined up
+Also here: rotation/translation pose errors, used to score refinement (random pose perturbations of a
+given size, which build the benchmarks, are :func:`nsplat.cameras.perturb_viewmats`). When the scene is learnable too, poses are only determined up
 to a common rigid motion of scene and cameras (the gauge), so besides the absolute errors against the
 ground truth there are two gauge-free scores: errors after removing the common rigid offset
 (:func:`align_to_reference`, like the aligned trajectory error of SLAM benchmarks) and relative pose
@@ -35,7 +35,9 @@ from __future__ import annotations
 import math
 
 import torch
-from kornia.geometry.liegroup import Se3, So3
+from kornia.geometry.liegroup import Se3
+
+from nsplat.cameras import camera_centres
 
 
 class CameraCorrection(torch.nn.Module):
@@ -127,34 +129,6 @@ class CameraCorrection(torch.nn.Module):
         if idx.numel() and (idx.min() < 0 or idx.max() >= self.num_cameras):
             raise ValueError(f"camera index out of range [0, {self.num_cameras}): {idx.tolist()}")
         return idx
-
-
-def perturb_viewmats(viewmats: torch.Tensor, rot_deg: float, trans: float,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
-    """Perturb cameras ``[B,4,4]`` by random rotations of exactly ``rot_deg`` degrees (random axes,
-    about the camera centre) and random camera-centre offsets of exactly length ``trans``.
-
-    Returns the perturbed world→camera matrices ``[B,4,4]`` (same dtype/device).
-    """
-    B = viewmats.shape[0]
-    dt = torch.float64
-    axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=generator, dtype=dt), dim=-1)
-    dirs = torch.nn.functional.normalize(torch.randn(B, 3, generator=generator, dtype=dt), dim=-1)
-    dR = So3.exp(axis * math.radians(rot_deg)).matrix()
-    V = viewmats.detach().to(dt).cpu()
-    R, t = V[:, :3, :3], V[:, :3, 3]
-    centre = -(R.transpose(1, 2) @ t[..., None])[..., 0] + trans * dirs
-    R2 = dR @ R
-    out = torch.eye(4, dtype=dt).repeat(B, 1, 1)
-    out[:, :3, :3] = R2
-    out[:, :3, 3] = -(R2 @ centre[..., None])[..., 0]
-    return out.to(viewmats)
-
-
-def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
-    """World positions ``[B, 3]`` of the optical centres of world→camera matrices ``[B,4,4]``."""
-    R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
-    return -(R.transpose(1, 2) @ t[..., None])[..., 0]
 
 
 def pose_errors(viewmats: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

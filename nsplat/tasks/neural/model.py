@@ -1,7 +1,6 @@
-"""The neural task's stage-2 networks: :class:`NeuralRenderer` (points with learned features → op →
-U-Net → RGB), its conditional PatchGAN, and the renderer as a :class:`~nsplat.view_model.ViewModel`.
-
-Used by :mod:`nsplat.tasks.neural` (training, evaluation, checkpoints) and its ``view``.
+"""The neural task's stage-2 model: the points with learned features (:func:`neural_scene_from` the stage-1
+surfels), :class:`NeuralRenderer` (points → op → U-Net → RGB), its conditional PatchGAN, the trained model
+from a checkpoint (:func:`load_model`) and the renderer as a :class:`~nsplat.view_model.ViewModel`.
 """
 from __future__ import annotations
 
@@ -11,12 +10,51 @@ import torch
 from torch import nn
 
 from nsplat import render as gateway
+from nsplat.checkpoint import load_checkpoint
+from nsplat.engine import checkpoint_rows
 from nsplat.models import PatchDiscriminator, UNet
 from nsplat.render import DRAW_STRIDE
-from nsplat.scene import SurfelScene
+from nsplat.runctx import RunContext
+from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.sh import view_colour
-from nsplat.tasks.neural_config import Config
+from nsplat.tasks.neural.capture import with_capture_render
+from nsplat.tasks.neural.config import Config
 from nsplat.view_model import TrainingCameras, ViewModel
+
+
+def neural_scene_config(cfg: Config) -> SceneConfig:
+    """Stage-2 scene: ``C`` raw features (+ stage 1's higher SH coefficients with ``neural.view_colour``);
+    learnable attributes from ``neural.learn``."""
+    return SceneConfig(channels=cfg.neural.features + cfg.view_rest(), learn=list(cfg.neural.learn),
+                       opacity=cfg.geometry.opacity, scale=None, feature_activation="identity")
+
+
+@torch.no_grad()
+def neural_scene_from(cfg: Config, geo: SurfelScene, seed: int) -> SurfelScene:
+    """Stage-2 scene from the stage-1 surfels: geometry copied, features = [colour, N(0, σ²)…] (with
+    ``neural.view_colour``: followed by stage 1's higher SH coefficients).
+
+    Points with opacity below ``geometry.prune_opacity`` are dropped.
+    """
+    keep = torch.ones(geo.num_points, dtype=torch.bool, device=geo.means.device)
+    if cfg.geometry.opacity is None:
+        keep = geo.opacities >= cfg.geometry.prune_opacity
+        if not bool(keep.any()):
+            raise RuntimeError("stage 1 left no point above geometry.prune_opacity")
+    C = cfg.neural.features
+    gen = torch.Generator().manual_seed(seed)
+    feats = torch.randn(int(keep.sum()), C, generator=gen, dtype=geo.means.dtype) * cfg.neural.feature_init_std
+    feats = feats.to(geo.means.device)
+    k = min(3, C)
+    feats[:, :k] = geo.features[keep][:, :k]
+    if cfg.view_rest():
+        feats = torch.cat([feats, geo.features[keep][:, 3:]], 1)
+    scfg = neural_scene_config(cfg)
+    kwargs = {"features": feats}
+    if scfg.opacity is None:
+        kwargs["opacities"] = geo.opacities[keep]
+    return SurfelScene.from_points(scfg, geo.means[keep].clone(), geo.normals[keep].clone(),
+                                   scales=geo.scales[keep].clone(), **kwargs)
 
 
 class NeuralRenderer(nn.Module):
@@ -141,3 +179,13 @@ def neural_view(model: NeuralRenderer, cameras: TrainingCameras | None, seed: in
     return ViewModel(s.means, s.normals, s.scales, s.opacities, s.features, model.background, colours=colours,
                      shader=_eval_unet(model), alpha_input=model.alpha_input, render_cfg=model.render_cfg,
                      cameras=cameras, task="neural", seed=seed)
+
+
+def load_model(cfg: Config, ctx: RunContext) -> NeuralRenderer:
+    """The trained renderer from the run's latest checkpoint."""
+    cfg = with_capture_render(cfg)
+    payload = load_checkpoint(ctx.run_dir, map_location="cpu")
+    points = checkpoint_rows(payload, "model", "scene._means")
+    model = NeuralRenderer(SurfelScene(neural_scene_config(cfg), points, device=ctx.device), cfg).to(ctx.device)
+    model.load_state_dict(payload["modules"]["model"])
+    return model

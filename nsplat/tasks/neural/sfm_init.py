@@ -30,9 +30,9 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from nsplat.background import project
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
+from nsplat.tasks.neural.background import project
 
 
 @dataclasses.dataclass

@@ -3,7 +3,7 @@
 :func:`build_config` builds a config's model(s) exactly as its task does, without data loading or
 training (point clouds and frames are replaced by placeholders of :data:`N_PLACEHOLDER` points and the
 config's camera count); :func:`inventory` lists every parameter and buffer with its shape and whether it
-is learned. ``benchmarks/allocation_table.py`` writes the table of the shipped configs
+is learned. ``python -m benchmarks.allocation_table`` writes the table of the shipped configs
 (``docs/model_allocation.md``); ``tests/test_allocation.py`` checks it.
 """
 from __future__ import annotations
@@ -19,7 +19,9 @@ from nsplat import fitting
 from nsplat.config import load_config, read_yaml
 from nsplat.data.views import PosedViews
 from nsplat.scene import SceneConfig, SurfelScene
-from nsplat.tasks import get_task, neural, neural_init, reconstruct, refine
+from nsplat.tasks import get_task, neural, reconstruct, refine
+from nsplat.tasks.neural.geometry import geometry_scene_config
+from nsplat.tasks.neural.model import neural_scene_config
 
 #: Placeholder point count; a tensor dimension equal to it is printed as ``N``.
 N_PLACEHOLDER = 1009
@@ -104,13 +106,13 @@ def build_refine(cfg: Any) -> tuple[Models, list[str]]:
 def build_neural(cfg: Any) -> tuple[Models, list[str]]:
     """Stage 1's scene, stage 2's renderer and (when enabled) the discriminator; with ``neural.steps: 0`` (the
     point-only model) stage 1's scene alone, as the task builds."""
-    stage1 = fitting.build(_placeholder_scene(neural_init.geometry_scene_config(cfg)), cfg.geometry.optim).modules
+    stage1 = fitting.build(_placeholder_scene(geometry_scene_config(cfg)), cfg.geometry.optim).modules
     colour = f"SH degree {cfg.geometry.sh_degree} surfels" if cfg.geometry.optim.shading == "sh" else "RGB surfels"
     points = f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"
     if cfg.neural.steps == 0:
         return {"stage1_scene": stage1["scene"]}, [f"stage 1 (geometry): {colour}; no stage 2 (neural.steps: 0: "
                                                     "the surfels are the model)", points]
-    stage2 = neural.build(cfg, _placeholder_scene(neural.neural_scene_config(cfg))).modules
+    stage2 = neural.build(cfg, _placeholder_scene(neural_scene_config(cfg))).modules
     disc = stage2.get("disc")
     view = " (+ stage 1's SH coefficients: neural.view_colour)" if cfg.neural.view_colour else ""
     notes = [f"stage 1 (geometry): {colour}; stage 2: {cfg.neural.features} learned features per point{view}, "

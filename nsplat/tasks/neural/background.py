@@ -20,19 +20,14 @@ import math
 import torch
 import torch.nn.functional as F
 
+from nsplat.cameras import camera_centres
 from nsplat.data.views import PosedViews
-
-
-def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
-    """``[V,3]`` centres of world→camera ``viewmats [V,4,4]`` (``-Rᵀt``)."""
-    R, t = viewmats[:, :3, :3].double(), viewmats[:, :3, 3].double()
-    return -(R.transpose(1, 2) @ t[:, :, None])[:, :, 0]
 
 
 def scene_frame(viewmats: torch.Tensor) -> tuple[torch.Tensor, float]:
     """``(centre [3] float64, radius)`` of the cameras ``viewmats [V,4,4]``: the point nearest (least squares)
     to all optical axes, and the median distance of the camera centres to it."""
-    C = camera_centres(viewmats)
+    C = camera_centres(viewmats.double())
     axis = viewmats[:, 2, :3].double()                          # viewing directions (third row of R)
     P = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]
     centre = torch.linalg.lstsq(P.sum(0), (P @ C[:, :, None]).sum(0)).solution[:, 0]
@@ -119,5 +114,5 @@ def depth_range(points: torch.Tensor, views: PosedViews, far_radius: float, marg
         raise ValueError("SfM points: none projects into any view; cannot set near/far")
     near = margin * float(d.min())
     centre, _ = scene_frame(views.viewmats)
-    reach = float((camera_centres(views.viewmats) - centre).norm(dim=1).max()) + far_radius
+    reach = float((camera_centres(views.viewmats.double()) - centre).norm(dim=1).max()) + far_radius
     return near, 2.0 * max(reach, float(d.max()))

@@ -1,11 +1,11 @@
 """Task ``refine``: camera-pose and scene refinement against posed RGB frames (paper §4, room scale).
 
 Given reference frames, initial (perturbed) cameras and an initial surfel cloud, minimise the masked
-L1 image loss over per-camera SE(3) corrections (:mod:`nsplat.poses`, optional focal), the scene's
+L1 image loss over per-camera SE(3) corrections (:mod:`nsplat.tasks.refine.poses`, optional focal), the scene's
 learnable attributes (:class:`nsplat.scene.SurfelScene`: positions, normals, scales, opacity, albedo;
 each switchable by ``scene.learn``) and the shading (2nd-order SH, :mod:`nsplat.sh`; or plain albedo;
 or Lambert with the paper's fixed lights, :mod:`nsplat.shading`). Poses and scene are optimised
-jointly or alternately (``optim.schedule``); the outlier filter (:mod:`nsplat.filtering`) removes
+jointly or alternately (``optim.schedule``); the outlier filter (:mod:`nsplat.tasks.refine.filtering`) removes
 points whose accumulated photometric error is improbable.
 
 Data sources: ``room`` (the synthetic benchmark of :mod:`nsplat.data.room`, with ground-truth poses)
@@ -15,7 +15,7 @@ from a PLY written by :meth:`SurfelScene.save_ply`).
 Every render goes through the gateway :func:`nsplat.render.render` (``render.renderer``: the sampled op,
 the dense oracle or the truncated baseline).
 
-Configuration: :mod:`nsplat.tasks.refine_config`. Steps run on the engine (:mod:`nsplat.engine`).
+Configuration: :mod:`nsplat.tasks.refine.config`. Steps run on the engine (:mod:`nsplat.engine`).
 
 Outputs in the run folder: ``tb/`` (TensorBoard), ``checkpoints/`` (atomic, exact resume),
 ``metrics_initial.json`` / ``metrics_final.json`` (pose errors, masked PSNR/SSIM, point count),
@@ -29,25 +29,29 @@ import math
 import resource
 from typing import Any
 
+import imageio.v3 as iio
 import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-from nsplat.checkpoint import load_checkpoint
 from nsplat import render as gateway
+from nsplat.cameras import perturb_viewmats
+from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError
+from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
 from nsplat.data.room import load_room
 from nsplat.data.views import PosedViews
 from nsplat.engine import (Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed,
                            write_json)
-from nsplat.filtering import improbable, point_errors
-from nsplat.poses import CameraCorrection, perturb_viewmats, pose_errors, pose_report
 from nsplat.render import RenderConfig, background_of
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SurfelScene
-from nsplat.tasks.refine_config import CAMERA_GROUPS, GROUPS, Config
+from nsplat.shading import lambert
 from nsplat.sh import SHLighting
+from nsplat.tasks.refine.config import CAMERA_GROUPS, GROUPS, Config
+from nsplat.tasks.refine.filtering import improbable, point_errors
+from nsplat.tasks.refine.poses import CameraCorrection, pose_errors, pose_report
 from nsplat.view_model import TrainingCameras, ViewModel
 
 log = logging.getLogger(__name__)
@@ -89,7 +93,6 @@ def load_data(cfg: Config, device: torch.device) -> tuple[PosedViews, SurfelScen
                                         scales=room.scales[:, None].expand(n, 2).contiguous(),
                                         opacities=torch.full((n,), d.init_opacity), features=room.colours)
     else:
-        from nsplat.data.nerf_synthetic import load_split
         nf = d.nerf
         views = load_split(resolve_data(nf.root, "nerf_synthetic/lego_400"), nf.split, resolution=nf.resolution,
                            background=cfg.render.background if cfg.scene.channels == 3 else (1.0, 1.0, 1.0),
@@ -147,7 +150,6 @@ class Refiner(torch.nn.Module):
         if self.cfg.shading.model == "sh":
             return self.sh(s.features, s.normals)
         if self.cfg.shading.model == "lambert":
-            from nsplat.shading import lambert
             return lambert(s.features, s.normals, viewmats)
         return s.features
 
@@ -409,7 +411,6 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "train") -> dict[str, An
 
 def render(cfg: Config, ctx: RunContext) -> None:
     """Write reference | render | |difference| PNGs of every frame to ``renders/``."""
-    import imageio.v3 as iio
     model, _ = restore(cfg, ctx)
     _, img = evaluate_state(model, op_seed(ctx.seed, "eval"), cfg.optim.batch)
     out = ctx.run_dir / "renders"

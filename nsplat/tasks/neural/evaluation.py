@@ -1,4 +1,5 @@
-"""Evaluation outputs of the ``neural`` task: held-out metrics with PNGs, and the orbit video."""
+"""Evaluation of the neural task: renders of a split (:func:`render_split`), held-out metrics with PNGs
+(:func:`evaluate_split`), stage 1 alone (:func:`evaluate_geometry`) and the orbit video (:func:`write_orbit`)."""
 from __future__ import annotations
 
 import logging
@@ -15,14 +16,14 @@ from nsplat.cameras import look_at
 from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
 from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhouette_band, ssim
+from nsplat.render import RenderConfig, render_views
 from nsplat.runctx import RunContext
-from nsplat.render import render_views
 from nsplat.scene import SurfelScene
-from nsplat.tasks.neural import NeuralRenderer, render_split
-from nsplat.tasks.neural_init import geometry_scene_config
-from nsplat.tasks.neural_config import Config
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.geometry import geometry_scene_config
+from nsplat.tasks.neural.model import NeuralRenderer
 
-log = logging.getLogger("nsplat.tasks.neural")
+log = logging.getLogger(__name__)
 
 
 #: Extensions a view name may carry (COLMAP image names keep theirs).
@@ -46,6 +47,29 @@ def _band(rgb: torch.Tensor, views: PosedViews, width: int = 1) -> dict | None:
     band = silhouette_band(views.masks.float(), width)
     return {"width_px": width, "pixel_share": float(band.float().mean()),
             "error_share": _stats(error_share(rgb, views.images, band))}
+
+
+@torch.no_grad()
+def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4,
+                 render_cfg: RenderConfig | None = None, draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode), with the
+    render settings ``render_cfg`` (default: the model's, i.e. training's; see ``Config.eval_render``) and
+    ``draws`` averaged op draws per feature image (``eval.draws``)."""
+    was, trained_cfg = model.training, model.render_cfg
+    model.eval()
+    if render_cfg is not None:
+        model.render_cfg = render_cfg
+    rgbs, conds = [], []
+    try:
+        for s in range(0, len(views), batch):
+            rgb, cond = model(views.viewmats[s:s + batch], views.Ks[s:s + batch], views.width, views.height, seed + s,
+                              draws=draws)
+            rgbs.append(rgb.permute(0, 2, 3, 1))
+            conds.append(cond)
+    finally:
+        model.train(was)
+        model.render_cfg = trained_cfg
+    return torch.cat(rgbs).clamp(0, 1), torch.cat(conds)
 
 
 def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,

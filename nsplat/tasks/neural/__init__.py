@@ -1,0 +1,121 @@
+"""Task ``neural``: neural point rendering (paper §4 "Neural Rendering").
+
+Stage 1 (geometry, :mod:`~nsplat.tasks.neural.geometry`): RGB surfels initialised on the visual hull of the
+training silhouettes (or the SfM points of a capture, a PLY, random points) and fitted to the training views
+with the op (:func:`nsplat.fitting.fit`); written to ``geometry.ply``.
+
+Stage 2 (neural, :mod:`~nsplat.tasks.neural.training`): every point gets ``C`` learned features (the first
+three start from its stage-1 colour); the op splats them (plus coverage) into a feature image that a U-Net
+shader turns into RGB (:mod:`~nsplat.tasks.neural.model`), trained with ``λ_L1·(L1 + D-SSIM) + adversarial``
+against a conditional PatchGAN. ``neural.steps: 0`` skips it: the stage-1 surfels are the model.
+
+Evaluation (:mod:`~nsplat.tasks.neural.evaluation`): held-out PSNR/SSIM with PNGs, stage 1 alone, the orbit
+video. Data (:mod:`~nsplat.tasks.neural.data`): the procedural scene, NeRF-synthetic folders and COLMAP
+captures (:mod:`~nsplat.tasks.neural.capture`). Configuration: :mod:`~nsplat.tasks.neural.config`.
+
+Both stages run on the engine (:mod:`nsplat.engine`), data-parallel under torchrun
+(:mod:`nsplat.distributed`, docs/distributed.md); rank 0 alone writes the run folder and evaluates.
+
+Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
+``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
+and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs),
+``eval_geometry.json`` (stage 1 alone on val and the held-out split) and ``orbit.mp4``.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from nsplat import distributed
+from nsplat.config import ConfigError
+from nsplat.data.views import PosedViews
+from nsplat.engine import Engine, checkpoint_rows, latest_payload, write_json
+from nsplat.runctx import RunContext
+from nsplat.scene import SurfelScene
+from nsplat.tasks.neural.capture import with_capture_render
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_orbit
+from nsplat.tasks.neural.geometry import fit_geometry
+from nsplat.tasks.neural.model import NeuralRenderer, load_model, neural_scene_config, neural_scene_from, neural_view
+from nsplat.tasks.neural.training import build, check_parallel, train_neural
+from nsplat.view_model import ViewModel, cameras_of
+
+__all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "render", "run", "view"]
+
+log = logging.getLogger(__name__)
+
+#: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
+DISTRIBUTED = True
+
+
+def run(cfg: Config, ctx: RunContext) -> dict:
+    """Train (stage 1, then stage 2; resumable) and evaluate the held-out split (under torchrun: rank 0
+    evaluates and returns the metrics, the other ranks return ``{}`` after training)."""
+    cfg = with_capture_render(cfg)
+    torch.manual_seed(ctx.seed)
+    t0 = time.perf_counter()
+    train = load_views(cfg, "train", ctx.device)
+    check_parallel(cfg, len(train))
+    val = load_views(cfg, "val", ctx.device) if cfg.log.validate else None
+    payload = latest_payload(ctx.run_dir, ctx.resume, "cpu")
+    timing = {}
+    if payload is None:
+        geo = fit_geometry(cfg, ctx, train, val)
+        timing["geometry_s"] = time.perf_counter() - t0
+        if cfg.neural.steps == 0:
+            return _point_only_result(cfg, ctx, val, timing)
+        scene = neural_scene_from(cfg, geo, seed=ctx.seed)
+        log.info("stage 2: %d points, %d features", scene.num_points, cfg.neural.features)
+    else:
+        points = checkpoint_rows(payload, "model", "scene._means")
+        scene = SurfelScene(neural_scene_config(cfg), points, device=ctx.device)
+    t = build(cfg, scene, ctx.seed)
+    start = Engine(ctx.run_dir, cfg.log, cfg.neural.steps).resume(t, payload)
+    train_neural(cfg, ctx, t, train, val, start)
+    if not distributed.is_main():
+        return {}
+    timing["train_total_s"] = time.perf_counter() - t0
+    metrics = evaluate(cfg, ctx, cfg.eval.split, model=t.modules["model"])
+    if cfg.eval.geometry:
+        splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
+                  cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
+        evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    write_json(ctx.run_dir / "timing.json", {**timing, "neural_steps_s": float(t.extra.get("seconds", 0.0))})
+    return metrics
+
+
+def _point_only_result(cfg: Config, ctx: RunContext, val: PosedViews | None, timing: dict) -> dict:
+    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics are the run's."""
+    if not distributed.is_main():
+        return {}
+    splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
+              cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
+    out = evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    write_json(ctx.run_dir / "timing.json", {**timing, "train_total_s": timing["geometry_s"], "neural_steps_s": 0.0})
+    return {"split": cfg.eval.split, "points": out["points"], **out[cfg.eval.split]}
+
+
+def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRenderer | None = None) -> dict:
+    """Held-out metrics of ``split`` (:func:`nsplat.tasks.neural.evaluation.evaluate_split`)."""
+    if split not in ("train", "val", "test"):
+        raise ConfigError(f"--split: expected train, val or test, got {split!r}")
+    cfg = with_capture_render(cfg)
+    model = model if model is not None else load_model(cfg, ctx)
+    return evaluate_split(cfg, ctx, model, load_views(cfg, split, ctx.device), split, cfg.eval_seed())
+
+
+def render(cfg: Config, ctx: RunContext) -> Path:
+    """Write ``orbit.mp4``: the trained model along a circle of cameras around the scene."""
+    cfg = with_capture_render(cfg)
+    return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), cfg.eval_seed())
+
+
+def view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras."""
+    model = load_model(cfg, ctx).eval()
+    train = load_views(cfg, "train", ctx.device)
+    return neural_view(model, cameras_of(train.images, train.viewmats, train.Ks), seed=cfg.eval_seed())
