@@ -8,10 +8,35 @@ LSGAN and BCE (:mod:`nsplat.losses`).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from torch import nn
 
 from .unet import Norm, norm_layer
+
+
+@dataclasses.dataclass
+class PatchGANConfig:
+    """The discriminator's shape (the ``neural.gan`` section of the neural task's config extends it).
+
+    Attributes:
+        width: channels of the first layer, doubled per layer up to ``8 · width``.
+        layers: number of stride-2 convolutions (receptive field 70 px for 3).
+        norm: ``batch``, ``instance``, ``group`` or ``none``.
+    """
+
+    width: int = 32
+    layers: int = 3
+    norm: Norm = "instance"
+
+    def __post_init__(self) -> None:
+        if self.width < 1:
+            raise ValueError(f"width: expected a value >= 1, got {self.width}")
+        if self.layers < 1:
+            raise ValueError(f"layers: expected a value >= 1, got {self.layers}")
+        if self.norm not in ("batch", "instance", "group", "none"):
+            raise ValueError(f"norm: expected one of batch, instance, group, none; got {self.norm!r}")
 
 
 class PatchDiscriminator(nn.Module):
@@ -20,19 +45,16 @@ class PatchDiscriminator(nn.Module):
     Args:
         cond_channels: channels of the condition (feature image).
         image_channels: channels of the judged image (3).
-        width: channels of the first layer, doubled per layer up to ``8 * width``.
-        layers: number of stride-2 convolutions.
-        norm: ``batch``, ``instance``, ``group`` or ``none``.
+        cfg: the discriminator's shape (:class:`PatchGANConfig`; default: its defaults).
     """
 
-    def __init__(self, cond_channels: int, image_channels: int = 3, *, width: int = 64, layers: int = 3,
-                 norm: Norm = "instance") -> None:
+    def __init__(self, cond_channels: int, image_channels: int = 3, cfg: PatchGANConfig | None = None) -> None:
         super().__init__()
+        cfg = PatchGANConfig() if cfg is None else cfg
         if cond_channels < 0 or image_channels < 1:
             raise ValueError(f"cond_channels/image_channels: expected >= 0 / >= 1, got "
                              f"{cond_channels}/{image_channels}")
-        if layers < 1 or width < 1:
-            raise ValueError(f"layers/width: expected >= 1, got {layers}/{width}")
+        width, layers, norm = cfg.width, cfg.layers, cfg.norm
         self.in_channels = cond_channels + image_channels
         mods: list[nn.Module] = [nn.Conv2d(self.in_channels, width, 4, stride=2, padding=1),
                                  nn.LeakyReLU(0.2, True)]

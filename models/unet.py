@@ -12,6 +12,7 @@ powers of two.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import torch
@@ -35,37 +36,68 @@ def norm_layer(kind: Norm, channels: int) -> nn.Module:
     raise ValueError(f"norm: expected one of batch, instance, group, none; got {kind!r}")
 
 
+@dataclasses.dataclass
+class UNetConfig:
+    """The shader's shape (``neural.unet`` of the neural task's config).
+
+    Attributes:
+        depth: number of stride-2 levels (the input is padded to a multiple of ``2**depth``), >= 1.
+        width: channels after the stem; doubled per level up to ``max_width``.
+        max_width: the widest level's channels (>= ``width``).
+        norm: ``batch``, ``instance``, ``group`` or ``none``.
+        dropout: dropout probability in [0, 1) in the ``dropout_layers`` innermost decoder levels.
+        dropout_layers: decoder levels with dropout, counted from the innermost.
+        upsample: ``transpose`` (4×4 transposed convolutions, pix2pix) or ``bilinear`` (+ 3×3 convolution; no
+            checkerboard artefacts).
+        output_range: ``(lo, hi)`` with ``hi > lo``; the output is ``lo + (hi - lo) · sigmoid(x)``.
+    """
+
+    depth: int = 4
+    width: int = 32
+    max_width: int = 128
+    norm: Norm = "group"
+    dropout: float = 0.0
+    dropout_layers: int = 2
+    upsample: Upsample = "bilinear"
+    output_range: tuple[float, float] = (0.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.depth < 1:
+            raise ValueError(f"depth: expected a value >= 1, got {self.depth}")
+        if self.width < 1:
+            raise ValueError(f"width: expected a value >= 1, got {self.width}")
+        if self.max_width < self.width:
+            raise ValueError(f"max_width: expected >= width ({self.width}), got {self.max_width}")
+        if self.norm not in ("batch", "instance", "group", "none"):
+            raise ValueError(f"norm: expected one of batch, instance, group, none; got {self.norm!r}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout: expected a probability in [0, 1), got {self.dropout}")
+        if self.dropout_layers < 0:
+            raise ValueError(f"dropout_layers: expected a value >= 0, got {self.dropout_layers}")
+        if self.upsample not in ("transpose", "bilinear"):
+            raise ValueError(f"upsample: expected 'transpose' or 'bilinear', got {self.upsample!r}")
+        lo, hi = (float(v) for v in self.output_range)
+        if not hi > lo:
+            raise ValueError(f"output_range: expected (lo, hi) with hi > lo, got {self.output_range}")
+
+
 class UNet(nn.Module):
     """U-Net shader.
 
     Args:
         in_channels: feature channels ``C`` of the input image.
         out_channels: output channels (3 for RGB).
-        depth: number of stride-2 levels (the input is padded to a multiple of ``2**depth``).
-        width: channels after the stem; doubled per level up to ``max_width``.
-        norm: ``batch``, ``instance``, ``group`` or ``none``.
-        dropout: dropout probability in the ``dropout_layers`` innermost decoder levels.
-        upsample: ``transpose`` (pix2pix) or ``bilinear`` (+ 3×3 conv; no checkerboard artefacts).
-        output_range: ``(lo, hi)``; the output is ``lo + (hi - lo) · sigmoid(x)``.
+        cfg: the network's shape (:class:`UNetConfig`; default: its defaults).
     """
 
-    def __init__(self, in_channels: int, out_channels: int = 3, *, depth: int = 4, width: int = 32,
-                 max_width: int = 256, norm: Norm = "instance", dropout: float = 0.0, dropout_layers: int = 2,
-                 upsample: Upsample = "transpose", output_range: tuple[float, float] = (0.0, 1.0)) -> None:
+    def __init__(self, in_channels: int, out_channels: int = 3, cfg: UNetConfig | None = None) -> None:
         super().__init__()
+        cfg = UNetConfig() if cfg is None else cfg
         if in_channels < 1 or out_channels < 1:
             raise ValueError(f"in_channels/out_channels: expected >= 1, got {in_channels}/{out_channels}")
-        if depth < 1:
-            raise ValueError(f"depth: expected >= 1, got {depth}")
-        if width < 1 or max_width < width:
-            raise ValueError(f"width/max_width: expected 1 <= width <= max_width, got {width}/{max_width}")
-        if not 0.0 <= dropout < 1.0:
-            raise ValueError(f"dropout: expected a probability in [0, 1), got {dropout}")
-        if upsample not in ("transpose", "bilinear"):
-            raise ValueError(f"upsample: expected 'transpose' or 'bilinear', got {upsample!r}")
-        lo, hi = (float(v) for v in output_range)
-        if not hi > lo:
-            raise ValueError(f"output_range: expected (lo, hi) with hi > lo, got {output_range}")
+        depth, width, max_width, norm = cfg.depth, cfg.width, cfg.max_width, cfg.norm
+        dropout, dropout_layers, upsample = cfg.dropout, cfg.dropout_layers, cfg.upsample
+        lo, hi = (float(v) for v in cfg.output_range)
         self.depth = depth
         self.register_buffer("_range", torch.tensor([lo, hi]), persistent=False)
         widths = [min(width * 2**i, max_width) for i in range(depth + 1)]

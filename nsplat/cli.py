@@ -3,18 +3,19 @@
 Usage::
 
     python train.py                                   # the default config (configs/default.yaml)
-    python train.py --config configs/lego.yaml optim.lr=0.005 --device cuda
+    python train.py --config configs/lego.yaml geometry.optim.epochs=60 --device cuda
     python train.py --config configs/lego.yaml --run runs/lego --resume
     python train.py eval --run runs/lego --split test
     python train.py render --run runs/lego
-    python train.py view --run runs/lego                 # web viewer (nsplat/viewer), --help for options
+    python train.py view --run runs/lego                 # web viewer (viewer.port=…, viewer.render.samples=…)
     python train.py export --run runs/lego --format ply  # or npz
     python train.py data fetch lego --resolution 400     # datasets into $NSPLAT_DATA (nsplat/data/commands.py)
     python train.py --config configs/lego.yaml viewer=true   # live view while training
     torchrun --nproc_per_node=2 train.py --config configs/lego.yaml   # data-parallel (docs/distributed.md)
 
-User errors (bad config, bad data files, a run folder that cannot be used as asked) print one line on
-stderr and exit with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md). Under
+Results (the run folder, then the metrics lines) go to stdout, progress and logs to stderr. User errors
+(bad config, bad data files, a run folder that cannot be used as asked) print one line on stderr and exit
+with code 2; a fresh start that fails leaves no run folder behind (docs/runs.md). Under
 torchrun, a rank that loses the others (one died, or the ``--dist-timeout`` passed) prints one line and
 exits with code 1.
 """
@@ -32,7 +33,7 @@ from typing import Any
 import torch
 import yaml
 
-from nsplat import distributed
+from nsplat import distributed, report
 from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.data import commands as data_commands
@@ -44,9 +45,9 @@ from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder
 from nsplat.tasks import TASKS, get_task
 from nsplat.viewer import commands as viewer_commands
 from nsplat.viewer import live
+from nsplat.viewer.config import split_viewer_overrides
 
 DEFAULT_CONFIG = config_dir() / "default.yaml"
-log = logging.getLogger("nsplat")
 
 
 COMMANDS = ("train", "eval", "render")
@@ -88,7 +89,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--overwrite", action="store_true",
                    help="delete the contents of a non-empty --run folder and start afresh")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
-    p.add_argument("--seed", type=int, default=None, help="global seed (default: from the config, else 0)")
+    p.add_argument("--seed", type=int, default=None, help="the config's seed (the override seed=N under its own name)")
     p.add_argument("--split", default="test", help="split for `eval`")
     p.add_argument("--dist-timeout", type=float, default=distributed.DEFAULT_TIMEOUT_S, metavar="SECONDS",
                    help="under torchrun: seconds a process waits for the others in a collective before the "
@@ -97,6 +98,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("overrides", nargs="*", help="config overrides key=value (dotted keys)")
     args = p.parse_intermixed_args(argv)  # options may come after overrides
     args.command = command
+    if args.seed is not None:
+        args.overrides.append(f"seed={args.seed}")
     bad = [o for o in args.overrides if "=" not in o]
     if bad:
         raise UsageError(f"unexpected argument {bad[0]!r}: overrides are key=value")
@@ -131,7 +134,8 @@ def _one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit code (0 success, 2 user error)."""
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # progress and logs: stderr
+    report.to_stdout()  # results (the run folder, metrics lines): stdout
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("view", "export"):  # own options: nsplat/viewer/commands.py
         return viewer_commands.main(argv[0], argv[1:])
@@ -177,7 +181,7 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
     if "task" not in raw:
         raise ConfigError("config has no 'task' key")
     task = get_task(raw["task"])
-    overrides, args.live_opts = live.split_overrides(args.overrides)
+    overrides, args.viewer = split_viewer_overrides(args.overrides)
     cfg = load_config(task.Config, raw, overrides)
     if args.resume:
         saved = to_dict(load_config(task.Config, raw))
@@ -190,7 +194,7 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
 
 def _train(args: argparse.Namespace) -> int:
     task, cfg, _ = _configs(args)
-    seed = args.seed if args.seed is not None else int(getattr(cfg, "seed", 0))
+    seed = int(getattr(cfg, "seed", 0))
     device = distributed.local_device(_device(args.device))
     if not distributed.launched():
         return _train_run(args, task, cfg, seed, device)
@@ -201,6 +205,7 @@ def _train(args: argparse.Namespace) -> int:
     distributed.init_from_env(device, args.dist_timeout)
     if not distributed.is_main():
         logging.getLogger().setLevel(logging.WARNING)  # rank 0 reports
+        report.to_stdout(enabled=False)
     try:
         return _train_run(args, task, cfg, seed, device)
     finally:
@@ -228,8 +233,8 @@ def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device:
             raise RunFolderError(value)
         args.run = value
         ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
-        log.info("run folder: %s", args.run)
-        with live.session(args.live_opts) if main else contextlib.nullcontext():
+        report.results.info("run folder: %s", args.run)
+        with live.session(args.viewer) if main else contextlib.nullcontext():
             task.run(cfg, ctx)
     except USER_ERRORS:
         if main:

@@ -8,6 +8,7 @@ the message. Nothing is silently dropped or coerced except ``int`` → ``float``
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import types
 import typing
@@ -61,15 +62,17 @@ def yaml_load(text: str) -> Any:
 
 
 class FieldError(ConfigError):
-    """A field of a config section is out of range; :func:`from_dict` adds the section's dotted prefix."""
+    """A field of a config section is out of range; :func:`from_dict` adds the section's dotted prefix (once:
+    an error of a section loaded inside another's validation, e.g. ``eval.render``, already has its own)."""
 
-    def __init__(self, key: str, expected: str, value: Any) -> None:
-        super().__init__(f"{key}: expected {expected}, got {value!r}")
-        self.key, self.expected, self.value = key, expected, value
+    def __init__(self, key: str, expected: str, value: Any, prefixed: bool = False, detail: str | None = None) -> None:
+        self.detail = f"expected {expected}, got {value!r}" if detail is None else detail
+        super().__init__(f"{key}: {self.detail}")
+        self.key, self.expected, self.value, self.prefixed = key, expected, value, prefixed
 
     def with_prefix(self, prefix: str) -> "FieldError":
-        """The same error with the section's dotted prefix on the key."""
-        return FieldError(prefix + self.key, self.expected, self.value)
+        """The same error with the section's dotted prefix on the key (unchanged when it has one already)."""
+        return self if self.prefixed else FieldError(prefix + self.key, self.expected, self.value, True, self.detail)
 
 
 def require(ok: bool, key: str, expected: str, value: Any) -> None:
@@ -80,16 +83,29 @@ def require(ok: bool, key: str, expected: str, value: Any) -> None:
 
 
 def require_fields(obj: Any, **rules: str) -> None:
-    """Range rules for fields of ``obj``: ``">=1"``, ``">=0"``, ``">0"``, ``"prob"`` (in (0, 1]),
-    ``"unit"`` (in [0, 1]); ``None`` values (optional fields) pass."""
-    checks = {">=1": (lambda v: v >= 1, "a value >= 1"), ">=0": (lambda v: v >= 0, "a value >= 0"),
-              ">0": (lambda v: v > 0, "a value > 0"), "prob": (lambda v: 0 < v <= 1, "a value in (0, 1]"),
-              "unit": (lambda v: 0 <= v <= 1, "a value in [0, 1]")}
+    """Range rules for fields of ``obj``: ``">=N"`` or ``">N"`` (a number N), ``"prob"`` (in (0, 1]),
+    ``"unit"`` (in [0, 1]), ``"rate"`` (in [0, 1): Adam's betas), ``"open"`` (in (0, 1)) or ``"finite"``; a list or tuple must hold valid items only,
+    and ``None`` values (optional fields) pass. NaN fails every rule."""
     for name, rule in rules.items():
         value = getattr(obj, name)
-        ok, expected = checks[rule]
+        ok, expected = _rule(rule)
         values = value if isinstance(value, (list, tuple)) else [value]
         require(all(v is None or ok(v) for v in values), name, expected, value)
+
+
+def _rule(rule: str) -> tuple[Any, str]:
+    """``(predicate, what it expects)`` of a :func:`require_fields` rule."""
+    named = {"prob": (lambda v: 0 < v <= 1, "a value in (0, 1]"), "unit": (lambda v: 0 <= v <= 1, "a value in [0, 1]"),
+             "rate": (lambda v: 0 <= v < 1, "a value in [0, 1)"), "open": (lambda v: 0 < v < 1, "a value in (0, 1)"),
+             "finite": (math.isfinite, "a finite number")}
+    if rule in named:
+        return named[rule]
+    match = re.fullmatch(r"(>=|>)(-?\d+(?:\.\d+)?)", rule)
+    if match is None:
+        raise ValueError(f"require_fields: unknown rule {rule!r}")
+    op, bound = match.group(1), float(match.group(2))
+    text = f"a value {op} {match.group(2)}"
+    return ((lambda v: v >= bound) if op == ">=" else (lambda v: v > bound)), text
 
 
 def _type_name(tp: Any) -> str:
@@ -172,6 +188,13 @@ def from_dict(cls: type[T], data: Mapping[str, Any], prefix: str = "") -> T:
         return cls(**kwargs)
     except FieldError as exc:
         raise exc.with_prefix(prefix) from None
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:  # a library's own check, "<field>: <what is wrong>" (e.g. the U-Net's)
+        key, sep, detail = str(exc).partition(": ")
+        if not sep or key not in names:
+            raise ConfigError(f"{prefix.rstrip('.') or cls.__name__}: {exc}") from None
+        raise FieldError(key, "", data.get(key), detail=detail).with_prefix(prefix) from None
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

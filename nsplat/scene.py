@@ -26,7 +26,7 @@ from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 from torch import nn
 
-from nsplat.config import ConfigError
+from nsplat.config import require, require_fields
 from nsplat.data.pointclouds import check_ply_header
 from nsplat.errors import DataError
 from nsplat.points import gather_rows, reset_rows, select_rows
@@ -61,25 +61,14 @@ class SceneConfig:
     feature_activation: Literal["identity", "sigmoid"] = "identity"
 
     def __post_init__(self) -> None:
-        if self.channels < 1:
-            raise ConfigError(f"scene.channels: expected an integer >= 1, got {self.channels}")
-        unknown = [a for a in self.learn if a not in ATTRIBUTES]
-        if unknown:
-            raise ConfigError(f"scene.learn: unknown attribute(s) {unknown}; expected a subset of {list(ATTRIBUTES)}")
-        if len(set(self.learn)) != len(self.learn):
-            raise ConfigError(f"scene.learn: duplicate entries in {self.learn}")
-        if self.opacity is not None:
-            if not 0.0 < self.opacity <= 1.0:
-                raise ConfigError(f"scene.opacity: expected a number in (0, 1] or null, got {self.opacity}")
-            if "opacities" in self.learn:
-                raise ConfigError("scene.learn: 'opacities' cannot be learned when scene.opacity is a constant; "
-                                 "set scene.opacity: null to allocate per-point opacities")
-        if self.scale is not None:
-            if not self.scale > 0.0:
-                raise ConfigError(f"scene.scale: expected a number > 0 or null, got {self.scale}")
-            if "scales" in self.learn:
-                raise ConfigError("scene.learn: 'scales' cannot be learned when scene.scale is a constant; "
-                                 "set scene.scale: null to allocate per-point scales")
+        require_fields(self, channels=">=1", opacity="prob", scale=">0")
+        require(all(a in ATTRIBUTES for a in self.learn), "learn", f"a subset of {list(ATTRIBUTES)}", self.learn)
+        require(len(set(self.learn)) == len(self.learn), "learn", "no duplicate entries", self.learn)
+        require(self.opacity is None or "opacities" not in self.learn, "learn",
+                "no 'opacities' with a constant opacity (set opacity: null to allocate per-point opacities)",
+                self.learn)
+        require(self.scale is None or "scales" not in self.learn, "learn",
+                "no 'scales' with a constant scale (set scale: null to allocate per-point scales)", self.learn)
 
     def allocated(self) -> tuple[str, ...]:
         """Names of the attributes stored per point under this config."""

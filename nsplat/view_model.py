@@ -52,9 +52,8 @@ class ViewModel:
         shader: optional image-space shader ``f(feature image [1,C',H,W]) → RGB [1,3,H,W]`` (the U-Net);
             ``C' = C + 1`` when ``alpha_input`` (coverage appended). ``None``: RGB = first 3 channels.
         alpha_input: append the splatted alpha to the shader's input.
-        render_cfg: the run's render settings (:class:`nsplat.render.RenderConfig`); the viewer
-            renders with the sampled op and its own ``samples``/``eps``
-            (:class:`nsplat.viewer.model.RenderSettings`).
+        render_cfg: the run's render settings (:class:`nsplat.render.RenderConfig`); the viewer starts from
+            them, with the ``viewer.render`` overrides (:class:`nsplat.viewer.model.RenderSettings`).
         cameras: the training cameras, or ``None``.
         task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
     """

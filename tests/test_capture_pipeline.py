@@ -19,7 +19,7 @@ import yaml
 from nsplat.cameras import camera_centres
 from nsplat.tasks.neural.background import project, scene_frame
 from nsplat.cli import main
-from nsplat.config import ConfigError, load_config
+from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.data.colmap import load_colmap
 from nsplat.errors import DataError
 from nsplat.data.raytrace import camera_rays, render, shade
@@ -87,7 +87,7 @@ def test_photos_have_no_blank_pixels_and_the_ray_tracer_refactor_is_exact(captur
 
 
 def _config(capture: Path, **geometry) -> dict:
-    raw = yaml.safe_load((REPO / "configs" / "colmap.yaml").read_text())
+    raw = read_yaml(REPO / "configs" / "colmap.yaml")
     raw["data"]["root"] = str(capture)
     raw["data"]["capture"]["downscale"] = 4
     raw["geometry"].update({"optim": {"epochs": 1, "batch": 2}, **geometry})

@@ -28,7 +28,19 @@ FUZZ = settings(max_examples=40, deadline=None, derandomize=True,
 bad_values = st.one_of(st.integers(-3, 0), st.sampled_from([0.5, -1.0, float("nan"), float("inf"), 1e12, 10**12]),
                        st.sampled_from(["x", "1e-3", "", None, True, [1], {"a": 1}]))
 VALID = {"points": st.integers(1, 40), "resolution": st.integers(1, 8), "views": st.integers(1, 2),
-         "samples": st.integers(1, 4), "eps": st.floats(1e-4, 1.0)}
+         "render.samples": st.integers(1, 4), "render.eps": st.floats(1e-4, 1.0)}
+
+
+def _nested(values: dict) -> dict:
+    """Dotted keys → nested mappings (``render.samples: 2`` → ``render: {samples: 2}``)."""
+    out: dict = {}
+    for key, value in values.items():
+        *sections, leaf = key.split(".")
+        node = out
+        for part in sections:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
 
 
 @FUZZ
@@ -45,7 +57,7 @@ def test_fuzz_demo_config_runs_or_exits_2(capsys, tmp_path_factory, data, bad, a
         overrides = [f"{k}={json.dumps(v) if not isinstance(v, float) or math.isfinite(v) else str(v)}"
                      for k, v in values.items()]
     else:
-        cfg.update(values)
+        cfg.update(_nested(values))
     (tmp / "c.yaml").write_text(yaml.safe_dump(cfg))
     run = tmp / "run"
     code = cli_main(["--config", str(tmp / "c.yaml"), "--run", str(run), *overrides])
@@ -69,15 +81,15 @@ def _finished_run() -> Path:
     if "run" not in _FINISHED:
         root = Path(tempfile.mkdtemp(prefix="nsplat-fuzz-"))
         cfg = root / "c.yaml"
-        cfg.write_text(yaml.safe_dump({"task": "demo", "points": 30, "resolution": 4, "views": 1, "samples": 2}))
+        cfg.write_text(yaml.safe_dump({"task": "demo", "points": 30, "resolution": 4, "views": 1, "render": {"samples": 2}}))
         assert cli_main(["--config", str(cfg), "--run", str(root / "run")]) == 0
         _FINISHED["run"] = root / "run"
     return _FINISHED["run"]
 
 
 @FUZZ
-@given(args=st.lists(st.sampled_from(["--resume", "points=31", "samples=3", "views=0", "seed=1", "eval", "render",
-                                      "resolution=5", "--seed", "2", "bogus", "eps=1e-3"]), max_size=4))
+@given(args=st.lists(st.sampled_from(["--resume", "points=31", "render.samples=3", "views=0", "seed=1", "eval",
+                                      "render", "resolution=5", "--seed", "2", "bogus", "render.eps=1e-3"]), max_size=4))
 def test_fuzz_commands_on_a_finished_run_never_modify_it(capsys, args):
     run = _finished_run()
     before = folder_hash(run)

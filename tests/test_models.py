@@ -9,14 +9,14 @@ from skimage.metrics import structural_similarity
 
 from nsplat.losses import discriminator_loss, generator_loss, l1_loss
 from nsplat.metrics_image import lpips_status, psnr, ssim
-from nsplat.models import PatchDiscriminator, UNet
+from nsplat.models import PatchDiscriminator, PatchGANConfig, UNet, UNetConfig
 
 
 @pytest.mark.parametrize("size", [(32, 32), (37, 53), (9, 70), (1, 5)])
 @pytest.mark.parametrize("norm,upsample", [("instance", "transpose"), ("group", "bilinear"), ("none", "bilinear")])
 def test_unet_any_size_shape_and_range(size, norm, upsample):
     torch.manual_seed(0)
-    net = UNet(5, 3, depth=3, width=8, norm=norm, upsample=upsample)
+    net = UNet(5, 3, UNetConfig(depth=3, width=8, norm=norm, upsample=upsample))
     x = torch.randn(2, 5, *size) * 10
     y = net(x)
     assert y.shape == (2, 3, *size)
@@ -25,7 +25,7 @@ def test_unet_any_size_shape_and_range(size, norm, upsample):
 
 def test_unet_output_range_dropout_and_gradients():
     torch.manual_seed(0)
-    net = UNet(4, 2, depth=2, width=8, dropout=0.5, output_range=(-1.0, 2.0))
+    net = UNet(4, 2, UNetConfig(depth=2, width=8, dropout=0.5, output_range=(-1.0, 2.0)))
     x = torch.randn(3, 4, 20, 12, requires_grad=True)
     y = net(x * 50)
     assert y.shape == (3, 2, 20, 12)
@@ -43,7 +43,7 @@ def test_unet_pads_and_crops_in_place():
     """A 21×21 input is padded to 24×24 (replicate) and cropped back: with a zero border the result
     must equal running the network on the input embedded in zeros at the padding offset."""
     torch.manual_seed(0)
-    net = UNet(2, 3, depth=3, width=4).eval()
+    net = UNet(2, 3, UNetConfig(depth=3, width=4)).eval()
     x = torch.zeros(1, 2, 21, 21)
     x[0, :, 6:15, 4:17] = torch.randn(2, 9, 13)
     big = torch.zeros(1, 2, 24, 24)
@@ -53,25 +53,25 @@ def test_unet_pads_and_crops_in_place():
 
 def test_unet_rejects_bad_arguments():
     with pytest.raises(ValueError, match="depth"):
-        UNet(3, depth=0)
+        UNetConfig(depth=0)
     with pytest.raises(ValueError, match="output_range"):
-        UNet(3, output_range=(1.0, 0.0))
+        UNetConfig(output_range=(1.0, 0.0))
     with pytest.raises(ValueError, match="norm"):
-        UNet(3, norm="layer")
+        UNetConfig(norm="layer")
     with pytest.raises(ValueError, match="x"):
-        UNet(3, depth=1, width=4)(torch.zeros(3, 8, 8))
+        UNet(3, cfg=UNetConfig(depth=1, width=4))(torch.zeros(3, 8, 8))
 
 
 @pytest.mark.parametrize("layers,size,patches", [(3, (64, 64), (6, 6)), (2, (37, 53), (7, 11)), (1, (12, 12), (4, 4))])
 def test_patchgan_shapes(layers, size, patches):
-    d = PatchDiscriminator(7, 3, width=8, layers=layers)
+    d = PatchDiscriminator(7, 3, PatchGANConfig(width=8, layers=layers))
     out = d(torch.randn(2, 7, *size), torch.rand(2, 3, *size))
     assert out.shape == (2, 1, *patches)
     assert d.min_size() == 3 * 2**layers
 
 
 def test_patchgan_rejects_mismatch_and_small_inputs():
-    d = PatchDiscriminator(4, 3, width=8, layers=3)
+    d = PatchDiscriminator(4, 3, PatchGANConfig(width=8, layers=3))
     with pytest.raises(ValueError, match="cond/image"):
         d(torch.randn(1, 4, 32, 32), torch.rand(1, 3, 30, 32))
     with pytest.raises(ValueError, match="channels"):
@@ -114,7 +114,7 @@ def test_image_metrics():
 
 def test_unet_residual_around_base():
     torch.manual_seed(0)
-    net = UNet(6, 3, depth=2, width=8, output_range=(-1.0, 1.0))
+    net = UNet(6, 3, UNetConfig(depth=2, width=8, output_range=(-1.0, 1.0)))
     x = torch.randn(2, 6, 13, 10)
     base = torch.rand(2, 3, 13, 10) * 1.6 - 0.8
     torch.nn.init.zeros_(net.head.weight)

@@ -266,11 +266,11 @@ def test_fit_mask_weight_fits_coverage_and_needs_masks(tmp_path):
         log=LogConfig(checkpoint=100, progress=False))
     assert coverage_error() > 0.95 * before  # without the term the silhouette stays (the image loss is ~0)
     cfg = FitConfig(epochs=30, batch=3, learn={"means": 0.03, "scales": 0.03}, shading="none", reposition=OFF,
-                    mask_weight=1.0)
+                    mask_loss=MaskLossConfig(weight=1.0))
     fit(scene, views, cfg, RenderConfig(renderer="splat"), tmp_path / "a", background=torch.ones(3),
         log=LogConfig(checkpoint=100, progress=False))
     assert coverage_error() < 0.5 * before, (before, coverage_error())
-    with pytest.raises(ConfigError, match="mask.weight"):
+    with pytest.raises(ConfigError, match="mask_loss.weight"):
         fit(scene, PosedViews(white, vm, Ks, [str(i) for i in range(6)]), cfg, RenderConfig(renderer="splat"),
             tmp_path / "b", log=LogConfig(checkpoint=100, progress=False))
 

@@ -7,12 +7,17 @@ import pytest
 import torch
 
 from nsplat.checkpoint import load_checkpoint
+from nsplat.engine import LogConfig
+from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
+from nsplat.scene import SceneConfig
 from nsplat.tasks import refine
 
 
 def _cfg(tmp_path, steps: int, schedule: str) -> refine.Config:
     cfg = refine.Config()
+    cfg.scene = SceneConfig(learn=["means", "normals", "features", "opacities"], opacity=None)
+    cfg.render = RenderConfig(near=0.3, background=[0.0, 0.0, 0.0])
     cfg.data.cache_dir = str(tmp_path / "cache")
     cfg.data.room = dataclasses.replace(cfg.data.room, width=20, height=15, frames=3, supersample=1,
                                         keyframe_stride=1, pixel_stride=2)
@@ -26,7 +31,7 @@ def _cfg(tmp_path, steps: int, schedule: str) -> refine.Config:
     cfg.optim.alternate_every = 1
     cfg.optim.decay_every = 3
     cfg.filter = dataclasses.replace(cfg.filter, start=2, every=2, p_value=0.2)  # prunes in this run
-    cfg.log = dataclasses.replace(cfg.log, every=1, images=0, checkpoint=2)
+    cfg.log = LogConfig(every=1, images=0, validate=0, checkpoint=2)
     return cfg
 
 

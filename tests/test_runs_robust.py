@@ -18,12 +18,11 @@ import yaml
 from nsplat.checkpoint import load_checkpoint, rotate_checkpoints, save_checkpoint
 from nsplat.cli import main as cli_main
 from nsplat.config import ConfigError, load_config, read_yaml
-from nsplat.runctx import RunLock
 from nsplat.tasks.demo import Config as DemoConfig
 from tests.conftest import write_dss_ply
 
 ROOT = Path(__file__).resolve().parents[1]
-DEMO = ["--config", str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6", "views=1", "samples=2"]
+DEMO = ["--config", str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6", "views=1", "render.samples=2"]
 
 
 def folder_hash(folder: Path) -> str:
@@ -192,8 +191,8 @@ def test_resume_with_a_changed_config_is_refused_before_writing(tmp_path, capsys
 
 # --------------------------------------------------------------- 8. user errors: one line, exit 2, no run
 @pytest.mark.parametrize("override,key", [("resolution=0", "resolution"), ("views=0", "views"),
-                                          ("points=0", "points"), ("points=-5", "points"), ("eps=.nan", "eps"),
-                                          ("samples=0", "samples")])
+                                          ("points=0", "points"), ("points=-5", "points"),
+                                          ("render.eps=.nan", "render.eps"), ("render.samples=0", "render.samples")])
 def test_impossible_config_values_exit_2_naming_the_key(tmp_path, capsys, override, key):
     code, err = run_cli(capsys, *DEMO, override, "--run", str(tmp_path / "run"))
     line = one_line_error(err)
@@ -246,20 +245,20 @@ def test_duplicate_yaml_keys_are_an_error_naming_the_key(tmp_path, capsys):
 
 
 def test_exponent_floats_are_numbers(tmp_path):
-    (tmp_path / "e.yaml").write_text("task: demo\neps: 1e-3\n")
-    assert load_config(DemoConfig, read_yaml(tmp_path / "e.yaml")).eps == 1e-3
-    assert load_config(DemoConfig, {"task": "demo"}, ["eps=5E-2"]).eps == 0.05
-    with pytest.raises(ConfigError, match="eps: expected a number"):
-        load_config(DemoConfig, {"task": "demo"}, ["eps=1e-3x"])
+    (tmp_path / "e.yaml").write_text("task: demo\nrender: {eps: 1e-3}\n")
+    assert load_config(DemoConfig, read_yaml(tmp_path / "e.yaml")).render.eps == 1e-3
+    assert load_config(DemoConfig, {"task": "demo"}, ["render.eps=5E-2"]).render.eps == 0.05
+    with pytest.raises(ConfigError, match="render.eps: expected a number"):
+        load_config(DemoConfig, {"task": "demo"}, ["render.eps=1e-3x"])
 
 
 def test_options_may_come_after_overrides(tmp_path, capsys):
     run = tmp_path / "run"
-    code, _ = run_cli(capsys, "views=1", "--run", str(run), "samples=2", "--config",
+    code, _ = run_cli(capsys, "views=1", "--run", str(run), "render.samples=2", "--config",
                       str(ROOT / "configs" / "demo.yaml"), "points=60", "resolution=6")
     assert code == 0
     saved = read_yaml(run / "config.yaml")
-    assert (saved["views"], saved["samples"], saved["points"]) == (1, 2, 60)
+    assert (saved["views"], saved["render"]["samples"], saved["points"]) == (1, 2, 60)
 
 
 def test_nested_range_errors_carry_the_section_prefix(tmp_path, capsys):

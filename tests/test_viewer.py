@@ -20,8 +20,10 @@ import yaml
 from nsplat.cli import main
 from nsplat.config import ConfigError
 from nsplat.export import read_npz, read_ply, surfel_arrays
+from nsplat.render import RenderConfig
 from nsplat.viewer import live
 from nsplat.viewer.camera import camera_request, pose_from_viewmat, vfov_of, viewmat_from_pose
+from nsplat.viewer.config import ViewerConfig, split_viewer_overrides
 from nsplat.viewer.model import MODES, RenderSettings, render_display
 from nsplat.viewer.runs import load_run
 from nsplat.viewer.server import ViewerServer, free_port, preview_settings
@@ -101,7 +103,7 @@ def test_browser_camera_conversion_round_trips(model):
 
 def test_server_serves_page_and_render_request_equals_direct_render(model):
     port = free_port()
-    server = ViewerServer(model, "127.0.0.1", port, RenderSettings(samples=8, resolution=24), thread=False)
+    server = ViewerServer(model, ViewerConfig(port=port, resolution=24, render={"samples": 8}), thread=False)
     try:
         with urllib.request.urlopen(server.url, timeout=10) as resp:
             page = resp.read().decode("utf-8", "replace")
@@ -126,7 +128,7 @@ def test_server_serves_page_and_render_request_equals_direct_render(model):
 
 
 def test_progressive_preview_while_moving_then_full_render(model):
-    server = ViewerServer(model, "127.0.0.1", free_port(), RenderSettings(samples=8, resolution=64), thread=False)
+    server = ViewerServer(model, ViewerConfig(port=free_port(), resolution=64, render={"samples": 8}), thread=False)
     try:
         c = model.cameras
         client = _FakeClient(_browser_camera(c.viewmats[0], c.Ks[0], c.width, c.height))
@@ -144,8 +146,8 @@ def test_progressive_preview_while_moving_then_full_render(model):
 
 
 def test_live_step_renders_within_budget_and_survives_disconnects(model, monkeypatch):
-    lv = live.LiveViewer(live.LiveOptions(enabled=True, port=free_port(), budget=1.0, refresh_every=1,
-                                          resolution=24, samples=8))
+    lv = live.LiveViewer(ViewerConfig(enabled=True, port=free_port(), budget=1.0, refresh_every=1, resolution=24,
+                                      render={"samples": 8}))
     try:
         c = model.cameras
         ok = _FakeClient(_browser_camera(c.viewmats[0], c.Ks[0], c.width, c.height))
@@ -156,15 +158,15 @@ def test_live_step_renders_within_budget_and_survives_disconnects(model, monkeyp
                                                                     c.height, lv.server.settings))
         lv.step(2, lambda: model)
         assert len(ok.images) == 2 and lv.errors == 0  # the failing client never reaches the hook
-        lv.opts.budget = 1e-9  # over budget: no render, however due
+        lv.cfg.budget = 1e-9  # over budget: no render, however due
         lv.step(3, lambda: model)
         assert len(ok.images) == 2
 
         def broken():
             raise RuntimeError("boom")
 
-        lv.opts.budget = 1.0
-        for k in range(lv.opts.max_errors):
+        lv.cfg.budget = 1.0
+        for k in range(live.MAX_ERRORS):
             lv.step(10 + k, broken)  # never raises into the training loop
         assert lv.server is None  # switched itself off
         lv.step(20, lambda: model)
@@ -173,16 +175,25 @@ def test_live_step_renders_within_budget_and_survives_disconnects(model, monkeyp
 
 
 def test_viewer_overrides_are_split_from_the_task_overrides():
-    rest, opts = live.split_overrides(["neural.steps=3", "viewer=true", "viewer.port=9001", "viewer.budget=0.2"])
-    assert rest == ["neural.steps=3"] and opts.enabled and opts.port == 9001 and opts.budget == 0.2
-    assert not live.split_overrides(["a=1"])[1].enabled
-    assert live.split_overrides(["viewer.port=9002"])[1].enabled
-    with pytest.raises(ConfigError, match="viewer.colour"):
-        live.split_overrides(["viewer.colour=red"])
-    with pytest.raises(ConfigError, match="viewer.port"):
-        live.split_overrides(["viewer.port=x"])
-    with pytest.raises(ConfigError, match="viewer"):
-        live.split_overrides(["viewer=maybe"])
+    rest, cfg = split_viewer_overrides(["neural.steps=3", "viewer=true", "viewer.port=9001", "viewer.budget=0.2",
+                                        "viewer.render.samples=8"])
+    assert rest == ["neural.steps=3"] and cfg.enabled and cfg.port == 9001 and cfg.budget == 0.2
+    assert cfg.render_cfg(RenderConfig(samples=40, lowpass=0.3)) == RenderConfig(samples=8, lowpass=0.3)
+    assert not split_viewer_overrides(["a=1"])[1].enabled
+    assert split_viewer_overrides(["viewer.port=9002"])[1].enabled
+    for bad, key in [("viewer.colour=red", "viewer.colour"), ("viewer.port=x", "viewer.port"),
+                     ("viewer=maybe", "viewer.enabled"), ("viewer.render.samples=0", "viewer.render.samples"),
+                     ("viewer.render.colour=1", "viewer.render.colour")]:
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            split_viewer_overrides([bad])
+
+
+def test_the_viewer_starts_from_the_runs_render_settings(model):
+    """The panel's m and ε are the run's ``render`` settings unless ``viewer.render`` overrides them."""
+    run = dataclasses.replace(model.render_cfg, samples=23, eps=0.03)
+    assert RenderSettings.start(run, ViewerConfig()).render == run
+    assert RenderSettings.start(run, ViewerConfig(render={"samples": 5})).render == dataclasses.replace(run, samples=5)
+    assert RenderSettings.start(run, ViewerConfig(resolution=99)).resolution == 99
 
 
 def test_export_ply_round_trips(run, model, tmp_path):
@@ -223,11 +234,12 @@ def test_bad_input_exits_2_with_one_line(run, tmp_path, capsys, argv, message):
 
 def test_demo_run_is_viewable(tmp_path):
     cfg = tmp_path / "demo.yaml"
-    cfg.write_text(yaml.safe_dump({"task": "demo", "points": 500, "resolution": 24, "views": 2, "samples": 8}))
+    cfg.write_text(yaml.safe_dump({"task": "demo", "points": 500, "resolution": 24, "views": 2, "render": {"samples": 8}}))
     assert main(["--config", str(cfg), "--run", str(tmp_path / "run")]) == 0
     m = load_run(tmp_path / "run")
     c = m.cameras
-    pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height, RenderSettings(samples=8, resolution=24))
+    pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height,
+                         RenderSettings.start(m.render_cfg, ViewerConfig(resolution=24, render={"samples": 8})))
     assert pic.shape == (24, 24, 3) and pic.std() > 0
 
 
@@ -244,5 +256,6 @@ def test_refine_run_is_viewable_live_and_after(tmp_path):
     m = load_run(tmp_path / "run")
     c = m.cameras
     assert c.viewmats.shape == (3, 4, 4) and c.images.shape == (3, 15, 20, 3)
-    pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height, RenderSettings(samples=8, resolution=20))
+    pic = render_display(m, c.viewmats[0], c.Ks[0], c.width, c.height,
+                         RenderSettings.start(m.render_cfg, ViewerConfig(resolution=20, render={"samples": 8})))
     assert pic.shape == (15, 20, 3) and pic.std() > 0

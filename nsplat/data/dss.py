@@ -20,7 +20,7 @@ import torch
 from nsplat import render as gateway
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.checkpoint import atomic_write
-from nsplat.config import ConfigError
+from nsplat.config import require, require_fields
 from nsplat.data.paths import resolve
 from nsplat.data.pointclouds import DSS_SHAPES, PointCloud
 from nsplat.data.views import PosedViews
@@ -61,15 +61,10 @@ class DataConfig:
     cache_dir: str = ""
 
     def __post_init__(self) -> None:
-        if self.shape not in DSS_SHAPES:
-            raise ConfigError(f"data.shape: expected one of {sorted(DSS_SHAPES)}, got {self.shape!r}")
-        for key in ("views", "width", "height"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
-        if not 0 < self.fov_deg < 180:
-            raise ConfigError(f"data.fov_deg: expected in (0, 180), got {self.fov_deg}")
-        if self.distance <= 1.0:
-            raise ConfigError(f"data.distance: expected > 1 (cameras outside the object), got {self.distance}")
+        require(self.shape in DSS_SHAPES, "shape", f"one of {sorted(DSS_SHAPES)}", self.shape)
+        require_fields(self, views=">=1", width=">=1", height=">=1", distance=">1", view_seed=">=0", gt_scale=">0",
+                       gt_albedo="unit")
+        require(0 < self.fov_deg < 180, "fov_deg", "a value in (0, 180)", self.fov_deg)
 
 
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from nsplat.cameras import intrinsics_from_fov, look_at, perturb_viewmats
-from nsplat.config import ConfigError
+from nsplat.config import require, require_fields
 from nsplat.data.views import PosedViews
 from nsplat.data.raytrace import Box, Material, Plane, Primitive, albedo, camera_rays, intersect
 from nsplat.sh import sh_shade
@@ -98,18 +98,10 @@ class RoomSpec:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("width", "height", "frames", "supersample", "keyframe_stride", "pixel_stride"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"data.room.{name}: expected an integer >= 1, got {getattr(self, name)}")
-        if not 1.0 < self.fov_deg < 170.0:
-            raise ConfigError(f"data.room.fov_deg: expected a value in (1, 170), got {self.fov_deg}")
-        for name in ("depth_noise", "normal_noise_deg", "outlier_fraction", "rot_deg", "trans_frac"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"data.room.{name}: expected a value >= 0, got {getattr(self, name)}")
-        if not 0.0 <= self.flying_fraction <= 1.0:
-            raise ConfigError(f"data.room.flying_fraction: expected a value in [0, 1], got {self.flying_fraction}")
-        if self.scale_factor <= 0:
-            raise ConfigError(f"data.room.scale_factor: expected a value > 0, got {self.scale_factor}")
+        require_fields(self, width=">=1", height=">=1", frames=">=1", supersample=">=1", keyframe_stride=">=1",
+                       pixel_stride=">=1", depth_noise=">=0", normal_noise_deg=">=0", outlier_fraction=">=0",
+                       rot_deg=">=0", trans_frac=">=0", flying_fraction="unit", scale_factor=">0", seed=">=0")
+        require(1.0 < self.fov_deg < 170.0, "fov_deg", "a value in (1, 170)", self.fov_deg)
 
     def key(self) -> str:
         """Short hash of the spec (cache key)."""

@@ -107,7 +107,7 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, epochs=">=0", batch=">=1", lr_decays=">=0", lr_gamma=">0", sh_rest_lr="prob",
-                       max_scale=">=0", anneal_epochs=">=0", anneal_factor="prob")
+                       max_scale=">=0", anneal_epochs=">=0", anneal_factor="prob", betas="rate")
         # epochs = 0 (no fit: e.g. stage 2 from a fitted geometry.ply) leaves the tail nothing to anneal
         require(self.epochs == 0 or self.anneal_epochs <= self.epochs, "anneal_epochs",
                 f"at most epochs ({self.epochs})", self.anneal_epochs)

@@ -39,7 +39,7 @@ class MaskLoss(Strategy):
 
     def attach(self, scene: SurfelScene, views: PosedViews | None) -> dict[str, nn.Module]:
         if views is not None and views.masks is None:
-            raise ConfigError("mask.weight: > 0 needs views with masks (RGBA images); these views have none")
+            raise ConfigError("mask_loss.weight: > 0 needs views with masks (RGBA images); these views have none")
         return {}
 
     def loss(self, fit: FitState, view: ViewRender) -> torch.Tensor:

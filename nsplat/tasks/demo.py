@@ -6,7 +6,6 @@ test of a fresh install: ``python train.py --config configs/demo.yaml``.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 
 import imageio.v3 as iio
@@ -17,33 +16,39 @@ from nsplat.config import require, require_fields
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.ops.validation import memory_limit
 from nsplat import render as gateway
-from nsplat.render import RenderConfig
+from nsplat.render import RenderConfig, background_of
+from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.view_model import TrainingCameras, ViewModel
-
-log = logging.getLogger("nsplat.demo")
 
 
 @dataclasses.dataclass
 class Config:
-    """Demo settings."""
+    """Demo settings.
+
+    Attributes:
+        task: ``demo``. seed: the scene's and the op's seed.
+        points: surfels of the procedural scene. resolution: image side (px). views: cameras on the orbit.
+        render: the render settings (:class:`nsplat.render.RenderConfig`; the shipped config: the sampled op on
+            a white background).
+        compare_dense: also render with the dense oracle and log the mean difference.
+    """
 
     task: str = "demo"
     seed: int = 0
     points: int = 20000
     resolution: int = 128
     views: int = 4
-    samples: int = 40
-    eps: float = 0.01
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     compare_dense: bool = False
 
     def __post_init__(self) -> None:
-        require_fields(self, points=">=1", resolution=">=1", views=">=1", samples=">=1", eps="prob")
-        need = self.points * 256 + self.views * (512 + self.resolution**2 * (self.samples * 12 + 64))
+        require_fields(self, seed=">=0", points=">=1", resolution=">=1", views=">=1")
+        need = self.points * 256 + self.views * (512 + self.resolution**2 * (self.render.samples * 12 + 64))
         limit = memory_limit(torch.device("cpu"))
-        require(need <= limit, "points/views/resolution/samples",
+        require(need <= limit, "points/views/resolution/render.samples",
                 f"a scene and images that fit in memory (about {need / 2**30:.3g} GiB needed, {limit / 2**30:.3g} GiB "
-                f"available)", [self.points, self.views, self.resolution, self.samples])
+                f"available)", [self.points, self.views, self.resolution, self.render.samples])
 
 
 def demo_scene(n: int, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -78,35 +83,32 @@ def orbit_cameras(views: int, resolution: int, radius: float = 3.2) -> tuple[tor
     return V, K
 
 
-def render_config(cfg: Config) -> RenderConfig:
-    """The gateway settings of the demo: the sampled op with ``samples``/``eps`` on a white background."""
-    return RenderConfig(samples=cfg.samples, eps=cfg.eps, background=[1.0, 1.0, 1.0])
-
-
 def run(cfg: Config, ctx: RunContext) -> None:
     """Render ``cfg.views`` views and write ``demo.png`` (a row of views) into the run folder."""
     torch.manual_seed(cfg.seed)
     sc = {k: v.to(ctx.device) for k, v in demo_scene(cfg.points, cfg.seed).items()}
     V, K = (t.to(ctx.device) for t in orbit_cameras(cfg.views, cfg.resolution))
-    rcfg = render_config(cfg)
+    rcfg = cfg.render
     args = (sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"], V, K, cfg.resolution,
             cfg.resolution)
     out = gateway.render(*args, rcfg, seed=ctx.seed)
     row = torch.cat(list(out.image.clamp(0, 1)), dim=1).cpu().numpy()
     path = ctx.run_dir / "demo.png"
     iio.imwrite(path, (row * 255).round().astype(np.uint8))
-    log.info("wrote %s (%d views, %d points, samples=%d, mean kernel evaluations/pixel %.1f)", path, cfg.views,
-             cfg.points, cfg.samples, float(out.work.float().mean()))
+    results.info("wrote %s (%d views, %d points, samples=%d, mean kernel evaluations/pixel %.1f)", path, cfg.views,
+             cfg.points, rcfg.samples, float(out.work.float().mean()))
     if cfg.compare_dense:
         ref = gateway.render(*args, dataclasses.replace(rcfg, renderer="dense"))
         err = float((out.image - ref.image).abs().mean())
-        log.info("mean abs difference to the dense renderer: %.5f", err)
+        results.info("mean abs difference to the dense renderer: %.5f", err)
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:
-    """The task contract's ``view``: the demo scene with its orbit cameras, on a white background."""
+    """The task contract's ``view``: the demo scene with its orbit cameras and render settings."""
     sc = {k: v.to(ctx.device) for k, v in demo_scene(cfg.points, cfg.seed).items()}
     V, K = orbit_cameras(cfg.views, cfg.resolution)
     cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.resolution, cfg.resolution)
+    bg = background_of(cfg.render, 3, sc["means"])
     return ViewModel(sc["means"], sc["normals"], sc["scales"], sc["opacities"], sc["features"],
-                     torch.ones(3, device=ctx.device), cameras=cams, task="demo", seed=cfg.seed)
+                     torch.zeros(3, device=ctx.device) if bg is None else bg, render_cfg=cfg.render, cameras=cams,
+                     task="demo", seed=cfg.seed)

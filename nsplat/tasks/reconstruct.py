@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import math
 import time
 from pathlib import Path
@@ -23,19 +22,18 @@ from matplotlib.figure import Figure
 from nsplat import distributed, fitting
 from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
-from nsplat.config import ConfigError, require_fields
+from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.dss import DataConfig, cache_file, gt_views, view_cameras
 from nsplat.data.pointclouds import PointCloud, load_dss_shape
 from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
 from nsplat.fitting import FitConfig, fit
 from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
 from nsplat.render import RenderConfig
+from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.shading import lambert
 from nsplat.view_model import TrainingCameras, ViewModel, surfel_view
-
-log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
@@ -57,13 +55,22 @@ class InitConfig:
     scale: float = 1.0
 
     def __post_init__(self) -> None:
-        require_fields(self, count=">=1", radius=">0", scale=">0")
+        require_fields(self, count=">=1", radius=">0", albedo="unit", scale=">0")
 
 
 @dataclasses.dataclass
 class Config:
-    """Task ``reconstruct``. ``log.validate``: steps between shape metrics (TensorBoard);
-    ``renders``: number of held-out views rendered to PNG at the end."""
+    """Task ``reconstruct``.
+
+    Attributes:
+        task: ``reconstruct``. seed: the run seed (batch order, repositioning draws, every op seed).
+        data: the ground-truth views (:class:`nsplat.data.dss.DataConfig`). init: :class:`InitConfig`.
+        scene: which point attributes exist and are learned (:class:`nsplat.scene.SceneConfig`; RGB albedo).
+        render: the render settings (:class:`nsplat.render.RenderConfig`). optim: the fitter
+            (:class:`nsplat.fitting.FitConfig`; Lambert shading). log: the cadences, ``log.validate`` the steps
+            between shape metrics (TensorBoard; :class:`nsplat.engine.LogConfig`).
+        renders: held-out views rendered to PNG at the end (>= 0).
+    """
 
     task: str = "reconstruct"
     seed: int = 0
@@ -72,11 +79,12 @@ class Config:
     scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: FitConfig = dataclasses.field(default_factory=FitConfig)
-    log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=0, validate=100,
-                                                                        checkpoint=50))
+    log: LogConfig = dataclasses.field(default_factory=LogConfig)
     renders: int = 3
 
     def __post_init__(self) -> None:
+        require(self.task == "reconstruct", "task", "'reconstruct'", self.task)
+        require_fields(self, seed=">=0", renders=">=0")
         if self.scene.channels != 3:
             raise ConfigError(f"scene.channels: the reconstruct task shades RGB albedo, expected 3, "
                               f"got {self.scene.channels}")
@@ -130,7 +138,7 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
     metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("train/loss"),
                    fit_seconds=time.time() - t0)
     write_json(ctx.run_dir / "metrics.json", metrics)
-    log.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)", metrics["chamfer"], metrics["chamfer_sq"],
+    results.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)", metrics["chamfer"], metrics["chamfer_sq"],
              metrics["hausdorff"], metrics["hausdorff_sq"])
     return metrics
 
@@ -211,7 +219,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, flo
     """Distances of the last checkpoint's points to the GT (``split`` is ignored: there is one GT)."""
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
     m = point_cloud_distances(restore(cfg, ctx).means.detach().cpu(), pc.points)
-    log.info("%s", json.dumps(m, indent=2))
+    results.info("%s", json.dumps(m, indent=2))
     return m
 
 

@@ -2,11 +2,12 @@
 
 Usage::
 
-    python train.py view --run DIR [--host 127.0.0.1] [--port 8080] [--device cpu]
-                         [--resolution 256] [--samples 16] [--eps 0.01]
+    python train.py view --run DIR [--device cpu] [viewer.port=8080 viewer.host=0.0.0.0 viewer.render.samples=16 …]
     python train.py export --run DIR --format ply|npz [--out PATH] [--device cpu]
 
-Bad input (missing run folder, no checkpoint, unknown format) is reported on one line, exit status 2.
+``view`` takes the viewer's settings as ``viewer.<key>=value`` (:class:`nsplat.viewer.config.ViewerConfig`, the
+same names as ``viewer=true`` on a training command). ``export`` prints the written file on stdout. Bad input
+(missing run folder, no checkpoint, unknown format, a bad setting) is reported on one line, exit status 2.
 """
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ from pathlib import Path
 
 import torch
 
+from nsplat.config import ConfigError
 from nsplat.export import FORMATS, export
-from nsplat.viewer.model import RenderSettings
+from nsplat.viewer.config import split_viewer_overrides
 from nsplat.viewer.runs import RunError, load_run
 from nsplat.viewer.server import serve
 
@@ -39,11 +41,8 @@ def _parser(command: str) -> argparse.ArgumentParser:
     p.add_argument("--run", type=Path, required=True, help="run folder (written by `python train.py`)")
     p.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     if command == "view":
-        p.add_argument("--host", default="127.0.0.1", help="address to bind (default: 127.0.0.1, local only)")
-        p.add_argument("--port", type=int, default=8080, help="port (default: 8080)")
-        p.add_argument("--resolution", type=int, default=256, help="initial longest image side (px)")
-        p.add_argument("--samples", type=int, default=16, help="initial samples per pixel")
-        p.add_argument("--eps", type=float, default=0.01, help="initial sampler error bound ε")
+        p.add_argument("settings", nargs="*", metavar="viewer.KEY=VALUE",
+                       help="viewer settings (viewer.host, viewer.port, viewer.resolution, viewer.render.<render key>)")
     else:
         p.add_argument("--format", required=True, help=f"one of {', '.join(FORMATS)}")
         p.add_argument("--out", type=Path, default=None, help="output file (default: RUN/export/surfels.FORMAT)")
@@ -58,18 +57,19 @@ def main(command: str, argv: list[str]) -> int:
             raise UsageError(f"--format: unknown format {args.format!r}; expected one of {', '.join(FORMATS)}")
         if args.device.startswith("cuda") and not torch.cuda.is_available():
             raise UsageError(f"--device {args.device}: CUDA is not available on this machine")
+        cfg = None
+        if command == "view":
+            rest, cfg = split_viewer_overrides(args.settings)
+            if rest:
+                raise UsageError(f"unexpected argument {rest[0]!r}: the viewer's settings are viewer.<key>=value")
         model = load_run(args.run, args.device)
-    except (UsageError, RunError) as exc:
+    except (UsageError, RunError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if command == "export":
         path = export(model, args.format, args.out or args.run / "export" / f"surfels.{args.format}")
-        log.info("wrote %s (%d surfels, %d features)", path, model.num_points, model.features.shape[1])
+        log.info("%d surfels, %d features", model.num_points, model.features.shape[1])
+        print(path)
         return 0
-    try:
-        settings = RenderSettings(samples=args.samples, eps=args.eps, resolution=args.resolution)
-    except ValueError as exc:
-        print(f"error: train.py view: {exc}", file=sys.stderr)
-        return 2
-    serve(model, args.host, args.port, settings)
+    serve(model, cfg)
     return 0

@@ -14,8 +14,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from nsplat.render import render
+from nsplat.render import RenderConfig, render
 from nsplat.view_model import ViewModel
+from nsplat.viewer.config import ViewerConfig
 
 Mode = Literal["rgb", "features", "alpha", "depth"]
 MODES: tuple[str, ...] = ("rgb", "features", "alpha", "depth")
@@ -23,28 +24,35 @@ MODES: tuple[str, ...] = ("rgb", "features", "alpha", "depth")
 
 @dataclasses.dataclass
 class RenderSettings:
-    """Viewer render settings (the speed/accuracy knobs).
+    """What the viewer's panel currently renders with (the speed/accuracy knobs); it starts from the run's
+    ``render`` section with the ``viewer`` settings applied (:meth:`start`).
 
     Attributes:
-        samples: per-pixel sample size m of the op. eps: its error bound ε.
+        render: the render settings (samples per pixel m, ε, …; the viewer always renders with the sampled op).
+        resolution: longest image side in pixels of a browser camera's render.
         mode: displayed image (``rgb``, ``features``, ``alpha``, ``depth``).
-        resolution: longest image side in pixels for a browser camera.
     """
 
-    samples: int = 16
-    eps: float = 0.01
+    render: RenderConfig
+    resolution: int
     mode: Mode = "rgb"
-    resolution: int = 256
 
     def __post_init__(self) -> None:
-        if self.samples < 1:
-            raise ValueError(f"samples: expected >= 1, got {self.samples}")
-        if not 0.0 < self.eps <= 1.0:
-            raise ValueError(f"eps: expected a value in (0, 1], got {self.eps}")
         if self.mode not in MODES:
             raise ValueError(f"mode: expected one of {list(MODES)}, got {self.mode!r}")
         if self.resolution < 8:
             raise ValueError(f"resolution: expected >= 8 pixels, got {self.resolution}")
+
+    @classmethod
+    def start(cls, run: RenderConfig, viewer: ViewerConfig) -> "RenderSettings":
+        """The panel's initial settings: the run's render settings ``run`` with ``viewer.render`` applied, at
+        ``viewer.resolution``."""
+        return cls(render=dataclasses.replace(viewer.render_cfg(run), renderer="splat"), resolution=viewer.resolution)
+
+    def with_samples(self, samples: int, eps: float | None = None) -> "RenderSettings":
+        """The same settings with ``samples`` per pixel (and ε ``eps``)."""
+        render = dataclasses.replace(self.render, samples=samples, eps=self.render.eps if eps is None else eps)
+        return dataclasses.replace(self, render=render)
 
 
 @dataclasses.dataclass
@@ -65,7 +73,7 @@ def render_view(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width:
 
     Args:
         viewmat: ``[4,4]`` OpenCV world→camera. K: ``[3,3]`` intrinsics in pixels.
-        width, height: image size in pixels. settings: samples, ε (``mode`` is ignored here).
+        width, height: image size in pixels. settings: the render settings (``mode`` is ignored here).
     """
     dev, dt = model.means.device, model.means.dtype
     V = viewmat.to(dev, dt).reshape(1, 4, 4)
@@ -75,7 +83,7 @@ def render_view(model: ViewModel, viewmat: torch.Tensor, K: torch.Tensor, width:
     if model.colours is not None:
         feats = model.colours(feats, normals, V)
         feats = feats[0] if feats.dim() == 3 else feats
-    cfg = dataclasses.replace(model.render_cfg, renderer="splat", samples=settings.samples, eps=settings.eps)
+    cfg = settings.render
     out = render(model.means.detach(), normals, model.scales.detach(), model.opacities.detach(), feats, V, Kb,
                  int(width), int(height), cfg, seed=model.seed, background=model.background.to(dev, feats.dtype))
     image, alpha = out.image[0], out.alpha[0]

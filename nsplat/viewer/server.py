@@ -22,6 +22,7 @@ import torch
 
 from nsplat.view_model import ViewModel
 from nsplat.viewer.camera import CameraLike, camera_request, pose_from_viewmat, vfov_of
+from nsplat.viewer.config import ViewerConfig
 from nsplat.viewer.model import MODES, RenderSettings, render_display
 
 log = logging.getLogger(__name__)
@@ -42,10 +43,14 @@ def _camera_key(camera: CameraLike) -> tuple:
             round(float(camera.fov), 6), round(float(camera.aspect), 4))
 
 
+#: Samples per pixel of the cheap render while a camera moves (at most; fewer when the panel asks for fewer).
+PREVIEW_SAMPLES = 4
+
+
 def preview_settings(settings: RenderSettings) -> RenderSettings:
-    """The cheap settings used while the camera moves: 1/4 resolution (>= 64 px), <= 4 samples."""
-    return dataclasses.replace(settings, resolution=max(64, settings.resolution // 4),
-                               samples=min(4, settings.samples))
+    """The cheap settings used while the camera moves: 1/4 resolution (>= 64 px), <= :data:`PREVIEW_SAMPLES`."""
+    return dataclasses.replace(settings.with_samples(min(PREVIEW_SAMPLES, settings.render.samples)),
+                               resolution=max(64, settings.resolution // 4))
 
 
 class ViewerServer:
@@ -53,9 +58,9 @@ class ViewerServer:
 
     Args:
         model: the scene (replace it later with :meth:`set_model`, e.g. while training).
-        host, port: where to listen (``127.0.0.1`` by default: local only; port 0 is not supported by
-            viser, pick a free one with :func:`free_port`).
-        settings: initial render settings (the GUI changes them).
+        cfg: the viewer's settings (``host``, ``port``: where to listen, local only by default; port 0 is not
+            supported by viser, pick a free one with :func:`free_port`). The panel starts from the first model's
+            render settings with ``cfg.render`` applied (:meth:`RenderSettings.start`) and changes them.
         thread: start a background thread that renders for the connected browsers.
     """
 
@@ -64,11 +69,11 @@ class ViewerServer:
     #: from the points' centroid (so the frusta around the scene are in view)
     initial_pullback: float = 1.4
 
-    def __init__(self, model: ViewModel | None, host: str = "127.0.0.1", port: int = 8080,
-                 settings: RenderSettings | None = None, thread: bool = True) -> None:
-        import viser
+    def __init__(self, model: ViewModel | None, cfg: ViewerConfig, thread: bool = True) -> None:
+        import viser  # the web server's dependency tree is loaded only when a viewer starts
 
-        self.settings = settings or RenderSettings()
+        self.cfg = cfg
+        self.settings: RenderSettings | None = None
         self.progressive = True
         self.last_render_s = 0.0
         self.total_render_s = 0.0
@@ -78,11 +83,10 @@ class ViewerServer:
         self._frusta: list = []
         self._cameras_key: tuple | None = None
         self._stop = threading.Event()
-        self.server = viser.ViserServer(host=host, port=port, label="nsplat", verbose=False)
-        self.host, self.port = host, self.server.get_port()
+        self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="nsplat", verbose=False)
+        self.host, self.port = cfg.host, self.server.get_port()
         self.model: ViewModel | None = None
         try:
-            self._build_gui()
             if model is not None:
                 self.set_model(model)
         except BaseException:
@@ -93,14 +97,15 @@ class ViewerServer:
             self._thread.start()
 
     # ------------------------------------------------------------------ GUI
-    def _build_gui(self) -> None:
-        gui, s = self.server.gui, self.settings
+    def _build_gui(self, s: RenderSettings) -> None:
+        gui = self.server.gui
         with gui.add_folder("Render"):
             self._mode = gui.add_dropdown("Show", MODES, initial_value=s.mode,
                                           hint="RGB, splatted features (first 3 channels), alpha or depth")
             self._res = gui.add_slider("Resolution", 16, max(1024, s.resolution), 16, s.resolution, hint="longest image side (px)")
-            self._samples = gui.add_slider("Samples / px", 1, max(64, s.samples), 1, s.samples, hint="per-pixel sample size m")
-            eps = min(EPS_CHOICES, key=lambda e: abs(float(e) - s.eps))
+            self._samples = gui.add_slider("Samples / px", 1, max(64, s.render.samples), 1, s.render.samples,
+                                           hint="per-pixel sample size m")
+            eps = min(EPS_CHOICES, key=lambda e: abs(float(e) - s.render.eps))
             self._eps = gui.add_dropdown("ε", EPS_CHOICES, initial_value=eps, hint="sampler error bound")
             self._prog = gui.add_checkbox("Progressive", True, hint="cheap render while the camera moves")
             self._cams = gui.add_checkbox("Training cameras", True)
@@ -111,8 +116,8 @@ class ViewerServer:
 
     def _settings_changed(self) -> None:
         with self._lock:
-            self.settings = RenderSettings(samples=int(self._samples.value), eps=float(self._eps.value),
-                                           mode=self._mode.value, resolution=int(self._res.value))
+            self.settings = dataclasses.replace(self.settings.with_samples(int(self._samples.value), float(self._eps.value)),
+                                                mode=self._mode.value, resolution=int(self._res.value))
             self.progressive = bool(self._prog.value)
             self._version += 1
 
@@ -175,6 +180,9 @@ class ViewerServer:
         """Show ``model`` from now on; ``refresh``: every client re-renders at full quality (otherwise
         only clients whose camera moves do)."""
         with self._lock:
+            if self.settings is None:  # the first model: the panel starts from its render settings
+                self.settings = RenderSettings.start(model.render_cfg, self.cfg)
+                self._build_gui(self.settings)
             self.model = model
             if refresh:
                 self._version += 1
@@ -249,7 +257,7 @@ class ViewerServer:
         pic = self.render_camera(client.camera, use)
         client.scene.set_background_image(pic, format="jpeg", jpeg_quality=90)
         self._stats.content = (f"**{self.model.task or 'scene'}** · {self.model.num_points:,} points  \n"
-                               f"{pic.shape[1]}×{pic.shape[0]} px · m = {use.samples} · ε = {use.eps:g} · "
+                               f"{pic.shape[1]}×{pic.shape[0]} px · m = {use.render.samples} · ε = {use.render.eps:g} · "
                                f"{self.last_render_s * 1000:.0f} ms")
         return 1
 
@@ -278,10 +286,9 @@ def free_port(host: str = "127.0.0.1") -> int:
         return int(s.getsockname()[1])
 
 
-def serve(model: ViewModel, host: str = "127.0.0.1", port: int = 8080,
-          settings: RenderSettings | None = None) -> None:
+def serve(model: ViewModel, cfg: ViewerConfig) -> None:
     """Serve ``model`` until interrupted (Ctrl-C)."""
-    server = ViewerServer(model, host, port, settings)
+    server = ViewerServer(model, cfg)
     log.info("viewer: %s (%s, %d points); Ctrl-C to stop", server.url, model.task, model.num_points)
     try:
         while True:

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Literal
 
-from nsplat.config import ConfigError, from_dict, require_fields, to_dict
+from nsplat.config import ConfigError, from_dict, require, require_fields, to_dict
 from nsplat.engine import LogConfig, op_seed
-from nsplat.fitting import FitConfig, RepositionConfig
+from nsplat.fitting import FitConfig
+from nsplat.models import PatchGANConfig, UNetConfig
 from nsplat.render import RenderConfig
 from nsplat.scene import ATTRIBUTES
 from nsplat.sh import MAX_VIEW_DEGREE, view_channels
@@ -28,7 +30,7 @@ class ProceduralConfig:
     cache_dir: str = "data_cache"
 
     def __post_init__(self) -> None:
-        require_fields(self, resolution=">=1", views=">=1", objects=">=1")
+        require_fields(self, seed=">=0", resolution=">=1", views=">=1", objects=">=1")
 
 
 @dataclasses.dataclass
@@ -60,10 +62,7 @@ class CaptureConfig:
     cache_dir: str | None = None
 
     def __post_init__(self) -> None:
-        require_fields(self, downscale=">=1", radius=">0")
-        for key in ("holdout_every", "val_every"):
-            if getattr(self, key) < 2:
-                raise ConfigError(f"data.capture.{key}: expected >= 2, got {getattr(self, key)}")
+        require_fields(self, downscale=">=1", radius=">0", holdout_every=">=2", val_every=">=2")
 
 
 @dataclasses.dataclass
@@ -90,21 +89,25 @@ class DataConfig:
     test_limit: int | None = None
 
     def __post_init__(self) -> None:
-        if self.source in ("nerf_synthetic", "colmap") and not self.root:
-            raise ConfigError(f"data.root: required when data.source is {self.source}")
-        if self.source == "colmap" and self.resolution is not None:
-            raise ConfigError("data.resolution: not used with data.source colmap; set data.capture.downscale")
-        if self.resolution is not None and self.resolution < 8:
-            raise ConfigError(f"data.resolution: expected >= 8 pixels or null, got {self.resolution}")
-        if any(not 0.0 <= c <= 1.0 for c in self.background):
-            raise ConfigError(f"data.background: expected RGB values in [0, 1], got {list(self.background)}")
+        require(self.source == "procedural" or bool(self.root), "root", f"a folder with source {self.source}",
+                self.root)
+        require(self.source != "colmap" or self.resolution is None, "resolution",
+                "null with source colmap (set capture.downscale)", self.resolution)
+        require_fields(self, resolution=">=8", background="unit", train_limit=">=1", val_limit=">=1",
+                       test_limit=">=1")
 
 
 @dataclasses.dataclass
 class GeometryFitConfig(FitConfig):
-    """:class:`nsplat.fitting.FitConfig` with this stage's defaults (short CPU schedule, RGB
-    features rendered without shading: photographs carry their own). ``shading: sh`` makes the colour
-    view-dependent (spherical harmonics up to ``geometry.sh_degree``)."""
+    """Stage 1's fitter settings: :class:`nsplat.fitting.FitConfig` (whose docstring documents every field),
+    with this stage's defaults for the fields below.
+
+    Attributes:
+        epochs: 8 (a short CPU schedule). batch: 4. learn: smaller position and size rates than the paper's.
+        lr_decays: 2.
+        shading: ``none`` (RGB features rendered as they are: photographs carry their own shading) or ``sh``
+            (view-dependent colour, spherical harmonics up to ``geometry.sh_degree``).
+    """
 
     epochs: int = 8
     batch: int = 4
@@ -112,7 +115,6 @@ class GeometryFitConfig(FitConfig):
         "means": 0.002, "normals": 0.01, "scales": 0.005, "opacities": 0.05, "features": 0.05})
     lr_decays: int = 2
     shading: Literal["none", "sh"] = "none"
-    reposition: RepositionConfig = dataclasses.field(default_factory=lambda: RepositionConfig(every=4))
 
 
 @dataclasses.dataclass
@@ -146,10 +148,7 @@ class SfmInitConfig:
     def __post_init__(self) -> None:
         require_fields(self, min_track=">=1", max_error=">0", std_ratio=">0", fill=">=0", fill_margin=">=0",
                        fill_seen="prob")
-        if not 0.0 < self.fill_opacity < 1.0:
-            raise ConfigError(f"geometry.sfm.fill_opacity: expected a value in (0, 1), got {self.fill_opacity}")
-        if self.k < 3:
-            raise ConfigError(f"geometry.sfm.k: expected >= 3 neighbours, got {self.k}")
+        require_fields(self, fill_opacity="open", k=">=3")
 
 
 @dataclasses.dataclass
@@ -171,10 +170,7 @@ class BackgroundConfig:
     centre: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        if self.points < 4:
-            raise ConfigError(f"geometry.background.points: expected >= 4, got {self.points}")
-        if self.radius is not None and self.radius <= 0:
-            raise ConfigError(f"geometry.background.radius: expected > 0 or null, got {self.radius}")
+        require_fields(self, points=">=4", radius=">0", centre="finite")
 
 
 @dataclasses.dataclass
@@ -217,8 +213,7 @@ class GeometryConfig:
     learn: list[str] = dataclasses.field(default_factory=lambda: ["means", "normals", "scales", "opacities",
                                                                   "features"])
     optim: GeometryFitConfig = dataclasses.field(default_factory=GeometryFitConfig)
-    log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=0, validate=0,
-                                                                        checkpoint=10))
+    log: LogConfig = dataclasses.field(default_factory=LogConfig)
     prune_opacity: float = 0.02
     sh_degree: int = 0
     sfm: SfmInitConfig = dataclasses.field(default_factory=SfmInitConfig)
@@ -229,48 +224,29 @@ class GeometryConfig:
         return view_channels(self.sh_degree) if self.optim.shading == "sh" else 3
 
     def __post_init__(self) -> None:
-        if not 0 <= self.sh_degree <= MAX_VIEW_DEGREE:
-            raise ConfigError(f"geometry.sh_degree: expected 0..{MAX_VIEW_DEGREE}, got {self.sh_degree}")
-        if (self.sh_degree > 0) != (self.optim.shading == "sh"):
-            raise ConfigError(f"geometry.sh_degree: expected >= 1 exactly when geometry.optim.shading is sh, got "
-                              f"{self.sh_degree} with shading {self.optim.shading!r}")
-        if self.init == "ply" and not self.ply:
-            raise ConfigError("geometry.ply: required when geometry.init is ply")
-        if self.grid < 8:
-            raise ConfigError(f"geometry.grid: expected >= 8, got {self.grid}")
-        if self.max_points < 1:
-            raise ConfigError(f"geometry.max_points: expected >= 1, got {self.max_points}")
-        if not 0.0 < self.init_opacity < 1.0:
-            raise ConfigError(f"geometry.init_opacity: expected a value in (0, 1), got {self.init_opacity}")
-        bad = [a for a in self.learn if a not in ATTRIBUTES]
-        if bad:
-            raise ConfigError(f"geometry.learn: unknown attribute(s) {bad}; expected a subset of {list(ATTRIBUTES)}")
-        if self.opacity is not None and "opacities" in self.learn:
-            raise ConfigError("geometry.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")
+        require(0 <= self.sh_degree <= MAX_VIEW_DEGREE, "sh_degree", f"0..{MAX_VIEW_DEGREE}", self.sh_degree)
+        require((self.sh_degree > 0) == (self.optim.shading == "sh"), "sh_degree",
+                f">= 1 exactly when optim.shading is sh (it is {self.optim.shading!r})", self.sh_degree)
+        require(self.init != "ply" or bool(self.ply), "ply", "a PLY file with init: ply", self.ply)
+        require(all(math.isfinite(v) for v in self.bbox) and all(a < b for a, b in zip(self.bbox[:3], self.bbox[3:])),
+                "bbox", "finite (xmin, ymin, zmin, xmax, ymax, zmax) with min < max", list(self.bbox))
+        require_fields(self, grid=">=8", alpha_threshold="unit", dilate=">=0", min_seen="unit", max_points=">=1",
+                       scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit")
+        require(all(a in ATTRIBUTES for a in self.learn), "learn", f"a subset of {list(ATTRIBUTES)}", self.learn)
+        require(self.opacity is None or "opacities" not in self.learn, "learn",
+                "no 'opacities' with a constant opacity (set opacity: null for per-point opacities)", self.learn)
 
 
 @dataclasses.dataclass
-class UNetConfig:
-    """Shader network (:class:`nsplat.models.UNet`)."""
-
-    depth: int = 4
-    width: int = 32
-    max_width: int = 128
-    norm: Literal["batch", "instance", "group", "none"] = "group"
-    dropout: float = 0.0
-    dropout_layers: int = 2
-    upsample: Literal["transpose", "bilinear"] = "bilinear"
-    output_range: tuple[float, float] = (0.0, 1.0)
-
-
-@dataclasses.dataclass
-class GanConfig:
-    """Conditional PatchGAN (:class:`nsplat.models.PatchDiscriminator`) and the adversarial loss.
+class GanConfig(PatchGANConfig):
+    """Conditional PatchGAN (:class:`nsplat.models.PatchDiscriminator`; its shape, ``width``, ``layers`` and
+    ``norm``, is :class:`nsplat.models.PatchGANConfig`) and the adversarial loss.
 
     Attributes:
         enabled: train with the adversarial term (``false``: L1 only; no discriminator is built).
-        mode: ``lsgan`` or ``bce``. weight: adversarial weight (pix2pix: 1). lambda_l1: L1 weight (100).
-        lr, betas: discriminator Adam. width, layers, norm: discriminator shape.
+        mode: ``lsgan`` or ``bce``. weight: adversarial weight (pix2pix: 1). lambda_l1: weight of the image
+            loss (L1 + D-SSIM) beside it (pix2pix: 100).
+        lr, betas: discriminator Adam.
         start: fraction of stage 2 after which the discriminator and the adversarial term join (the
             image loss alone before; first GAN step ``round(start · neural.steps)``); the discriminator's
             rate decays to ``neural.lr_final`` over its own steps.
@@ -282,14 +258,12 @@ class GanConfig:
     lambda_l1: float = 100.0
     lr: float = 2e-4
     betas: tuple[float, float] = (0.5, 0.999)
-    width: int = 32
-    layers: int = 3
-    norm: Literal["batch", "instance", "group", "none"] = "instance"
     start: float = 0.0
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.start < 1.0:
-            raise ConfigError(f"neural.gan.start: expected a fraction of the steps in [0, 1), got {self.start}")
+        super().__post_init__()
+        require_fields(self, weight=">=0", lambda_l1=">=0", lr=">0", betas="rate")
+        require(0.0 <= self.start < 1.0, "start", "a fraction of the steps in [0, 1)", self.start)
 
 
 @dataclasses.dataclass
@@ -344,25 +318,14 @@ class NeuralConfig:
         return min(round(self.gan.start * self.steps), self.steps - 1)
 
     def __post_init__(self) -> None:
-        if self.steps < 0:
-            raise ConfigError(f"neural.steps: expected >= 0, got {self.steps}")
-        for key in ("batch", "features"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"neural.{key}: expected >= 1, got {getattr(self, key)}")
-        if self.chunk is not None and self.chunk < 1:
-            raise ConfigError(f"neural.chunk: expected >= 1 or null, got {self.chunk}")
-        if self.chunk is not None and self.chunk < self.batch and "batch" in (self.unet.norm, self.gan.norm):
-            raise ConfigError("neural.chunk: batch norm statistics would depend on the chunks; use norm group, "
-                              "instance or none with chunks smaller than neural.batch")
-        if self.residual and self.features < 3:
-            raise ConfigError(f"neural.residual: needs neural.features >= 3, got {self.features}")
-        bad = [a for a in self.learn if a not in ATTRIBUTES]
-        if bad:
-            raise ConfigError(f"neural.learn: unknown attribute(s) {bad}; expected a subset of {list(ATTRIBUTES)}")
-        if not 0.0 <= self.ssim_weight <= 1.0:
-            raise ConfigError(f"neural.ssim_weight: expected a value in [0, 1], got {self.ssim_weight}")
-        if not 0.0 < self.lr_final <= 1.0:
-            raise ConfigError(f"neural.lr_final: expected a fraction in (0, 1], got {self.lr_final}")
+        require_fields(self, steps=">=0", batch=">=1", chunk=">=1", features=">=1", feature_init_std=">=0", lr=">0",
+                       betas="rate", lr_final="prob", ssim_weight="unit")
+        require(self.chunk is None or self.chunk >= self.batch or "batch" not in (self.unet.norm, self.gan.norm),
+                "chunk", "a whole batch with batch norm (its statistics would depend on the chunks; use norm group, "
+                "instance or none)", self.chunk)
+        require(not self.residual or self.features >= 3, "features", ">= 3 with residual: true", self.features)
+        require(all(a in ATTRIBUTES and v > 0 for a, v in self.learn.items()), "learn",
+                f"positive rates for attributes among {list(ATTRIBUTES)}", self.learn)
 
 
 @dataclasses.dataclass
@@ -394,13 +357,20 @@ class EvalConfig:
     draws: int = 1
 
     def __post_init__(self) -> None:
-        if self.draws < 1:
-            raise ConfigError(f"eval.draws: expected >= 1, got {self.draws}")
+        require_fields(self, val_views=">=1", orbit_frames=">=1", fps=">=1", draws=">=1")
 
 
 @dataclasses.dataclass
 class Config:
-    """Task ``neural`` (see the module docstring)."""
+    """Task ``neural`` (see :mod:`nsplat.tasks.neural`).
+
+    Attributes:
+        task: ``neural``. seed: the run seed (data order, initial features, every op seed).
+        data: :class:`DataConfig`, the posed images. render: the render settings of training
+            (:class:`nsplat.render.RenderConfig`). geometry: :class:`GeometryConfig`, stage 1.
+        neural: :class:`NeuralConfig`, stage 2. log: the stage-2 cadences (:class:`nsplat.engine.LogConfig`).
+        eval: :class:`EvalConfig`, evaluation.
+    """
 
     task: str = "neural"
     seed: int = 0
@@ -412,10 +382,8 @@ class Config:
     eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
 
     def __post_init__(self) -> None:
-        if self.task != "neural":
-            raise ConfigError(f"task: expected 'neural', got {self.task!r}")
-        if self.seed < 0:
-            raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        require(self.task == "neural", "task", "'neural'", self.task)
+        require_fields(self, seed=">=0")
         self.eval_render()  # unknown or invalid eval.render keys fail at load
         if "opacities" in self.neural.learn and self.geometry.opacity is not None:
             raise ConfigError("neural.learn: 'opacities' needs geometry.opacity: null (per-point opacities)")

@@ -17,6 +17,7 @@ from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
 from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhouette_band, ssim
 from nsplat.render import RenderConfig, render_views
+from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
@@ -108,7 +109,7 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
                "render_seconds": seconds}
     write_json(out_dir / "metrics.json", metrics)
     write_json(out_dir / "per_view.json", {"views": per_view})
-    log.info("held-out %s (%d views, %dx%d): PSNR %.2f ± %.2f dB, SSIM %.4f ± %.4f, LPIPS %s", split, len(views),
+    results.info("held-out %s (%d views, %dx%d): PSNR %.2f ± %.2f dB, SSIM %.4f ± %.4f, LPIPS %s", split, len(views),
              views.width, views.height, metrics["psnr"]["mean"], metrics["psnr"]["std"], metrics["ssim"]["mean"],
              metrics["ssim"]["std"], metrics["lpips"] if isinstance(metrics["lpips"], str)
              else f"{metrics['lpips']['mean']:.4f}")
@@ -131,7 +132,7 @@ def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews
                 for s in range(0, len(views), 4)]
         rgb = torch.cat(rgbs).clamp(0, 1)
         out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}
-        log.info("stage 1 alone, %s: PSNR %.2f dB", split, out[split]["psnr"]["mean"])
+        results.info("stage 1 alone, %s: PSNR %.2f dB", split, out[split]["psnr"]["mean"])
     write_json(ctx.run_dir / "eval_geometry.json", out)
     return out
 
@@ -173,5 +174,5 @@ def write_orbit(cfg: Config, ctx: RunContext, model: NeuralRenderer, train: Pose
     frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")  # even sizes for yuv420p
     path = ctx.run_dir / "orbit.mp4"
     imageio.mimwrite(path, list(frames), fps=cfg.eval.fps, macro_block_size=1)
-    log.info("orbit video (%d frames) written to %s", len(frames), path)
+    results.info("orbit video (%d frames) written to %s", len(frames), path)
     return path

@@ -74,10 +74,7 @@ class NeuralRenderer(nn.Module):
         self.alpha_input = n.alpha_input
         self.residual = n.residual
         self.view_rest = cfg.view_rest()
-        u = n.unet
-        self.unet = UNet(self.cond_channels, 3, depth=u.depth, width=u.width, max_width=u.max_width, norm=u.norm,
-                         dropout=u.dropout, dropout_layers=u.dropout_layers, upsample=u.upsample,
-                         output_range=tuple(u.output_range))
+        self.unet = UNet(self.cond_channels, 3, n.unet)
         if self.residual:
             nn.init.zeros_(self.unet.head.weight)
             nn.init.zeros_(self.unet.head.bias)
@@ -151,7 +148,7 @@ def build_discriminator(cfg: Config, cond_channels: int) -> PatchDiscriminator |
     g = cfg.neural.gan
     if not g.enabled:
         return None
-    return PatchDiscriminator(cond_channels, 3, width=g.width, layers=g.layers, norm=g.norm)
+    return PatchDiscriminator(cond_channels, 3, g)
 
 
 def _eval_unet(model: NeuralRenderer) -> Callable[[torch.Tensor], torch.Tensor]:

@@ -45,6 +45,7 @@ from nsplat.data.views import PosedViews
 from nsplat.engine import (Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed,
                            write_json)
 from nsplat.render import RenderConfig, background_of
+from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.shading import lambert
@@ -394,7 +395,7 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
     write_json(ctx.run_dir / "metrics_final.json", final)
     torch.save(img.cpu(), ctx.run_dir / "renders_final.pt")
     _save_outputs(model, ctx)
-    log.info("final: %s", final)
+    results.info("final: %s", final)
     return final
 
 
@@ -405,7 +406,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "train") -> dict[str, An
     out, _ = evaluate_state(model, op_seed(ctx.seed, "eval"), cfg.optim.batch)
     out["step"] = done
     write_json(ctx.run_dir / "eval.json", out)
-    log.info("eval: %s", out)
+    results.info("eval: %s", out)
     return out
 
 

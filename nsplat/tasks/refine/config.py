@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from nsplat.config import ConfigError
+from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.room import RoomSpec
 from nsplat.engine import LogConfig
 from nsplat.render import RenderConfig
@@ -35,6 +35,9 @@ class NerfSource:
     trans_frac: float = 0.02
     perturb_seed: int = 0
 
+    def __post_init__(self) -> None:
+        require_fields(self, resolution=">=8", limit=">=0", rot_deg=">=0", trans_frac=">=0", perturb_seed=">=0")
+
 
 @dataclasses.dataclass
 class DataConfig:
@@ -54,30 +57,49 @@ class DataConfig:
     cache_dir: str = "data_cache"
     init_opacity: float = 0.9
 
+    def __post_init__(self) -> None:
+        require_fields(self, init_opacity="open")
+
 
 @dataclasses.dataclass
 class ShadingConfig:
-    """How albedo becomes colour: ``albedo`` (none), ``sh`` (2nd-order SH irradiance), ``lambert``
-    (the paper's camera-fixed lights, :mod:`nsplat.shading`). ``learn_sh`` makes the 9×C SH
-    coefficients learnable; ``ambient`` is their initial uniform radiance."""
+    """How albedo becomes colour.
+
+    Attributes:
+        model: ``albedo`` (none), ``sh`` (2nd-order SH irradiance) or ``lambert`` (the paper's camera-fixed
+            lights, :mod:`nsplat.shading`).
+        learn_sh: make the 9×C SH coefficients learnable. ambient: their initial uniform radiance (>= 0).
+    """
 
     model: Literal["albedo", "sh", "lambert"] = "sh"
     learn_sh: bool = True
     ambient: float = 1.0
 
+    def __post_init__(self) -> None:
+        require_fields(self, ambient=">=0")
+
 
 @dataclasses.dataclass
 class PoseConfig:
-    """Camera corrections (see :class:`nsplat.tasks.refine.poses.CameraCorrection`)."""
+    """Camera corrections (see :class:`nsplat.tasks.refine.poses.CameraCorrection`).
+
+    Attributes:
+        learn: learn a per-camera SE(3) correction. learn_focal: learn a focal-length correction.
+        shared_focal: one focal correction for all cameras (one lens).
+        frozen: indices of cameras kept fixed (e.g. an anchor fixing the gauge).
+        pivot: rotation pivot of the corrections: ``scene`` (the initial cloud's median depth on each camera's
+            optical axis; decouples rotation from translation, see :mod:`nsplat.tasks.refine.poses`) or
+            ``centre`` (the optical centre).
+    """
 
     learn: bool = True
     learn_focal: bool = False
     shared_focal: bool = True
     frozen: list[int] = dataclasses.field(default_factory=list)
-    #: rotation pivot of the corrections: ``scene`` (the initial cloud's median depth on each
-    #: camera's optical axis; decouples rotation from translation, see :mod:`nsplat.tasks.refine.poses`) or
-    #: ``centre`` (the optical centre).
     pivot: Literal["scene", "centre"] = "centre"
+
+    def __post_init__(self) -> None:
+        require_fields(self, frozen=">=0")
 
 
 @dataclasses.dataclass
@@ -117,14 +139,12 @@ class OptimConfig:
         "pose": 1e-3, "focal": 1e-4})
 
     def __post_init__(self) -> None:
-        bad = [g for g in self.learn if g not in GROUPS]
-        if bad:
-            raise ConfigError(f"optim.learn: unknown group(s) {bad}; expected names from {list(GROUPS)}")
-        bad = [g for g in self.warmup_groups if g not in GROUPS]
-        if bad:
-            raise ConfigError(f"optim.warmup_groups: unknown group(s) {bad}; expected names from {list(GROUPS)}")
-        if self.warmup < 0:
-            raise ConfigError(f"optim.warmup: expected >= 0, got {self.warmup}")
+        require(all(g in GROUPS and v > 0 for g, v in self.learn.items()), "learn",
+                f"positive rates for groups among {list(GROUPS)}", self.learn)
+        require(all(g in GROUPS for g in self.warmup_groups), "warmup_groups", f"names from {list(GROUPS)}",
+                self.warmup_groups)
+        require_fields(self, steps=">=0", batch=">=1", alternate_every=">=1", warmup=">=0", decay_every=">=0",
+                       decay="prob")
 
 
 #: Optimiser parameter-group names: camera groups, then scene + shading groups.
@@ -134,32 +154,38 @@ GROUPS = CAMERA_GROUPS + ("means", "normals", "scales", "opacities", "features",
 
 @dataclasses.dataclass
 class Config:
-    """Configuration of the ``refine`` task."""
+    """Configuration of the ``refine`` task.
+
+    Attributes:
+        task: ``refine``. seed: the run seed (batch order, every op seed).
+        data: :class:`DataConfig`, frames, cameras and the initial cloud. scene: which point attributes exist
+            and are learned (:class:`nsplat.scene.SceneConfig`). shading: :class:`ShadingConfig`.
+        poses: :class:`PoseConfig`. render: the render settings (:class:`nsplat.render.RenderConfig`).
+        optim: :class:`OptimConfig`. mask_loss: restrict the loss to the frames' valid pixels.
+        coverage_mask: also leave out of the loss the pixels where the current render's (detached) alpha is
+            below this, in [0, 1] (0: off). Reference pixels that no point covers (parts of the room no keyframe
+            saw) cannot be explained by any pose; against the background colour they pull every camera towards
+            showing more of the cloud, a bias of the pose estimate.
+        filter: the outlier filter (:class:`nsplat.tasks.refine.filtering.FilterConfig`).
+        log: the cadences (:class:`nsplat.engine.LogConfig`).
+    """
 
     task: str = "refine"
     seed: int = 0
     data: DataConfig = dataclasses.field(default_factory=DataConfig)
-    scene: SceneConfig = dataclasses.field(default_factory=lambda: SceneConfig(
-        channels=3, learn=["means", "normals", "features", "opacities"], opacity=None, scale=None))
+    scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
     shading: ShadingConfig = dataclasses.field(default_factory=ShadingConfig)
     poses: PoseConfig = dataclasses.field(default_factory=PoseConfig)
-    render: RenderConfig = dataclasses.field(default_factory=lambda: RenderConfig(near=0.3, background=[0.0, 0.0, 0.0]))
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     mask_loss: bool = True
-    #: also leave out of the loss the pixels where the current render's (detached) alpha is below this
-    #: (0: off). Reference pixels that no point covers (parts of the room no keyframe saw) cannot be
-    #: explained by any pose; against the background colour they pull every camera towards showing
-    #: more of the cloud, a bias of the pose estimate.
     coverage_mask: float = 0.0
     filter: FilterConfig = dataclasses.field(default_factory=FilterConfig)
-    log: LogConfig = dataclasses.field(default_factory=lambda: LogConfig(every=10, images=100, validate=0,
-                                                                        checkpoint=50))
+    log: LogConfig = dataclasses.field(default_factory=LogConfig)
 
     def __post_init__(self) -> None:
-        if self.task != "refine":
-            raise ConfigError(f"task: expected 'refine', got {self.task!r}")
-        if self.optim.steps < 0 or self.optim.batch < 1 or self.optim.alternate_every < 1:
-            raise ConfigError("optim.steps must be >= 0, optim.batch and optim.alternate_every >= 1")
+        require(self.task == "refine", "task", "'refine'", self.task)
+        require_fields(self, seed=">=0", coverage_mask="unit")
         if self.render.background is not None and len(self.render.background) != self.scene.channels:
             raise ConfigError(f"render.background: expected {self.scene.channels} values, "
                               f"got {len(self.render.background)}")

@@ -29,7 +29,7 @@ from typing import Callable, Literal
 
 import torch
 
-from nsplat.config import ConfigError
+from nsplat.config import require_fields
 
 
 @dataclasses.dataclass
@@ -56,14 +56,7 @@ class FilterConfig:
     max_fraction: float = 0.1
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.p_value < 1.0:
-            raise ConfigError(f"filter.p_value must be in (0, 1), got {self.p_value}")
-        if self.min_weight < 0:
-            raise ConfigError(f"filter.min_weight must be >= 0, got {self.min_weight}")
-        if not 0.0 < self.max_fraction <= 1.0:
-            raise ConfigError(f"filter.max_fraction must be in (0, 1], got {self.max_fraction}")
-        if self.start < 0 or self.every < 0:
-            raise ConfigError(f"filter.start and filter.every must be >= 0, got {self.start}, {self.every}")
+        require_fields(self, p_value="open", min_weight=">=0", max_fraction="prob", start=">=0", every=">=0")
 
     def due(self, step: int) -> bool:
         """Whether the filter runs after optimisation step ``step``."""
