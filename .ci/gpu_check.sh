@@ -3,8 +3,8 @@
 #   1. builds the CPU and CUDA backends (and, in the background, gsplat's JIT extension when gsplat imports);
 #   2. tests/test_op_cuda.py's GPU tests (-m cuda), while compute-sanitizer memcheck runs every kernel path of
 #      tests/cuda_sanitizer_case.py, then racecheck on one small scene;
-#   3. benchmarks/op_cuda.py (with gsplat's 2DGS rasteriser when its build succeeded), alone on the machine.
-#   4. (GPU_CHECK_STAGES: "profile") per-kernel GPU time (benchmarks/op_cuda_profile.py);
+#   3. python -m benchmarks.op_cuda (with gsplat's 2DGS rasteriser when its build succeeded), alone on the machine.
+#   4. (GPU_CHECK_STAGES: "profile") per-kernel GPU time (python -m benchmarks.op_cuda_profile);
 #   5. (GPU_CHECK_STAGES: "train") the README's main job on the GPU (`python train.py --device cuda`);
 #   6. (GPU_CHECK_STAGES: "ncu") Nsight Compute sections of one sample_kernel launch (N=1M, 512², m=16).
 # GPU_CHECK_STAGES picks stages (default "tests bench"; also "profile", "train", "ncu"); GPU_CHECK_BENCH_ARGS are
@@ -87,20 +87,20 @@ if [ -n "$GS_PID" ]; then
 fi
 if has profile; then
   echo "== per-kernel profile ($(left) s left)"
-  timeout 90 python3 benchmarks/op_cuda_profile.py --sizes 10000,1000000 --out "$OUT/op_cuda_profile.json"
+  timeout 90 python3 -m benchmarks.op_cuda_profile --sizes 10000,1000000 --out "$OUT/op_cuda_profile.json"
   echo "profile rc=$?"
 fi
 if has bench; then
   echo "== benchmark, gsplat $GSPLAT ($(left) s left)"
   # shellcheck disable=SC2086  # GPU_CHECK_BENCH_ARGS is a list of arguments
-  timeout "$(upto "$(has ncu && echo 60 || echo 5)")" python3 benchmarks/op_cuda.py --gsplat "$GSPLAT" --out "$OUT/op_cuda.json" ${GPU_CHECK_BENCH_ARGS:-}
+  timeout "$(upto "$(has ncu && echo 60 || echo 5)")" python3 -m benchmarks.op_cuda --gsplat "$GSPLAT" --out "$OUT/op_cuda.json" ${GPU_CHECK_BENCH_ARGS:-}
   echo "benchmark rc=$?"
 fi
 if has ncu; then
   echo "== Nsight Compute on the first sample_kernel launch, N=1M ($(left) s left)"
   timeout "$(upto 5)" ncu --clock-control none -k regex:sample_kernel -c 1 --section SpeedOfLight --section Occupancy \
     --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats \
-    python3 benchmarks/op_cuda_profile.py --sizes 1000000 --reps 1 >"$OUT/ncu.txt" 2>&1
+    python3 -m benchmarks.op_cuda_profile --sizes 1000000 --reps 1 >"$OUT/ncu.txt" 2>&1
   echo "ncu rc=$?"
   grep -E "Duration|Registers|Local|Achieved Occupancy|Theoretical Occupancy|Memory Throughput|Compute \(SM\)|Stall" "$OUT/ncu.txt" | head -30
 fi

@@ -1,16 +1,13 @@
-"""The table and plot code shared by the ablations ``benchmarks/table2.py`` (samples per pixel) and
-``benchmarks/table3.py`` (training views): one Markdown row per setting beside the paper's numbers,
+"""The table and plot code shared by the ablations :mod:`benchmarks.table2` (samples per pixel) and
+:mod:`benchmarks.table3` (training views): one Markdown row per setting beside the paper's numbers,
 the two-panel plot and the JSON result."""
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from table1 import IMAGES, fmt, write_json  # noqa: E402
+from benchmarks.table1 import IMAGES, fmt, write_json
 
 METRICS_HEADER = "HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | paper HD | paper CD | time s"
 
@@ -20,7 +17,8 @@ def plot(x: list[int], rows: list[dict], xlabel: str, path: Path, logx: bool = F
     is drawn when fewer than two runs have finished."""
     if len(rows) < 2:
         return
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    fig = Figure(figsize=(8, 3.2))
+    axes = fig.subplots(1, 2)
     for ax, key in zip(axes, ("chamfer", "hausdorff")):
         ax.plot(x, [r[key] for r in rows], "o-", label=f"{key} (plain)")
         ax.plot(x, [r[f"{key}_sq"] for r in rows], "s--", label=f"{key}² (authors)")
@@ -60,4 +58,4 @@ def report(name: str, args, xs: tuple[int, ...], rows: list[dict | None], paper:
     table = markdown(xs, rows, paper, columns, extra)
     print(table)
     plot([x for x, _ in done], [r for _, r in done], xlabel, IMAGES / f"{image}-{args.setting}.png", logx=True)
-    print(f"\nwrote {write_json(name, args, [r for _, r in done], {'paper': paper, 'markdown': table})}")
+    write_json(name, args, [r for _, r in done], {'paper': paper, 'markdown': table})

@@ -14,14 +14,13 @@ recognisable); everything else is literal.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 from benchmarks.allocation import Entry, build_config, inventory
+from benchmarks.common import REPO as ROOT
 from nsplat.tasks import TASKS
 
-ROOT = Path(__file__).resolve().parents[1]
 
 DOC = ROOT / "docs" / "model_allocation.md"
 

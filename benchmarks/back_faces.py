@@ -1,50 +1,41 @@
-"""Where a fitted stage 1's samples go, and what more samples at evaluation do (issue 28, session 8).
+"""Where a fitted stage 1's samples go, and what more samples at evaluation do.
 
-Loads fitted surfels (default: the annealed 72-epoch lego stage 1; two-sided surfels) and, on the first
+Loads fitted surfels (default: ``runs/lego_splat_only/geometry.ply``, configs/lego_splat_only.yaml's stage 1;
+two-sided surfels) and, on the first
 ``--views`` val views, draws each pixel's sample with the config's render settings: on object pixels (alpha
 > 0.5) it reports how many of the m slots are filled, the share of filled slots that hold **back faces**
 (surfels whose normal faces away from the camera) and the share of the composite weight they carry, and the
 kernel evaluations per pixel. Then the val PSNR (every val view, the evaluation's draws) with the evaluation
 rendered at each ``--samples`` value (``eval.render.samples``) instead of the m the surfels were fitted with.
 
-    python benchmarks/back_faces.py runs/ttq/lego/point-72ep-norepo-cap05-a12-s0/geometry.ply
+    python train.py --config configs/lego_splat_only.yaml --run runs/lego_splat_only   # the surfels (30 min)
+    python -m benchmarks.back_faces runs/lego_splat_only/geometry.ply
 
 Prints two tables and writes ``benchmarks/results/back_faces.json``.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from rate_floor import val_psnr
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import write_result
+from benchmarks.fitted import load_fitted, val_psnr
+from nsplat.config import load_config, read_yaml
+from nsplat.ops import splat
+from nsplat.tasks.neural.config import Config
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("ply", nargs="?", default=str(ROOT / "runs/ttq/lego/point-72ep-norepo-cap05-a12-s0/geometry.ply"))
+    ap.add_argument("ply", nargs="?", default=str(ROOT / "runs" / "lego_splat_only" / "geometry.ply"))
     ap.add_argument("--config", default=str(ROOT / "configs" / "lego.yaml"))
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--samples", type=int, nargs="+", default=[40, 64, 96, 160])
     args = ap.parse_args()
-
-    from nsplat.config import load_config, read_yaml
-    from nsplat.ops import splat
-    from nsplat.scene import SurfelScene
-    from nsplat.tasks.neural import load_views
-    from nsplat.tasks.neural_config import Config
-    from nsplat.tasks.neural_init import geometry_scene_config
-
-    cfg = load_config(Config, read_yaml(args.config), [])
-    val = load_views(cfg, "val", torch.device("cpu"))
-    scene = SurfelScene.load_ply(args.ply, geometry_scene_config(cfg), device=torch.device("cpu"))
+    fitted = load_fitted(args.config, args.ply, splits=("val",))
+    cfg, val, scene = fitted.cfg, fitted.val, fitted.load()
     r = cfg.render
     kw = dict(samples=r.samples, eps=r.eps, lowpass=r.lowpass, estimator=r.estimator, near=r.near, far=r.far)
     print(f"{args.ply}: {scene.num_points} surfels, m = {r.samples}")
@@ -77,11 +68,8 @@ def main() -> None:
         p = val_psnr(scene, cfg_m, val)
         psnrs.append({"samples": m, "val_psnr": p})
         print(f"| {m} | {p:.2f} |", flush=True)
-    res = ROOT / "benchmarks" / "results" / "back_faces.json"
-    res.write_text(json.dumps({"ply": args.ply, "config": args.config, "fit_samples": r.samples, "views": views,
-                               "eval_samples": psnrs, "threads": torch.get_num_threads(), "load": os.getloadavg()},
-                              indent=1))
-    print(f"written {res}")
+    write_result("back_faces", {"ply": args.ply, "config": args.config, "fit_samples": r.samples, "views": views,
+                                "eval_samples": psnrs})
 
 
 if __name__ == "__main__":

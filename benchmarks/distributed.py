@@ -10,8 +10,8 @@ and the held-out PSNR should agree while the step rate scales. Stage-2 time is r
 Prints a Markdown table and writes ``benchmarks/results/distributed.json`` (with the machine's load
 average before and after: on a shared machine the 2-process rate is only as good as the idle cores).
 
-    python benchmarks/distributed.py                       # lego 100², 40 steps, 1 and 2 processes
-    python benchmarks/distributed.py --procs 1 2 4 --steps 50 neural.batch=8
+    python -m benchmarks.distributed                       # lego 100², 40 steps, 1 and 2 processes
+    python -m benchmarks.distributed --procs 1 2 4 --steps 50 neural.batch=8
 """
 from __future__ import annotations
 
@@ -19,13 +19,10 @@ import argparse
 import json
 import os
 import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
+from benchmarks.common import REPO, run_config, write_result
 #: The short job (on top of --config): few training and test views, a small hull, two geometry epochs.
 SHORT = ["data.train_limit=20", "data.test_limit=5", "geometry.grid=64", "geometry.max_points=6000",
          "geometry.optim.epochs=2", "neural.batch=4", "log.validate=0", "log.images=0", "log.checkpoint=0",
@@ -43,22 +40,16 @@ def run(procs: int, root: Path, args: argparse.Namespace) -> dict:
     out = root / f"p{procs}"
     launcher = [sys.executable] if procs == 1 else [
         sys.executable, "-m", "torch.distributed.run", f"--nproc_per_node={procs}", f"--master_port={_free_port()}"]
-    cmd = [*launcher, str(REPO / "train.py"), "--config", str(args.config), "--run-dir", str(out), "--overwrite",
-           f"data.resolution={args.resolution}", f"neural.steps={args.steps}", *SHORT, *args.extra]
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    root.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    with open(root / f"p{procs}.log", "w") as fh:
-        proc = subprocess.run(cmd, cwd=REPO, env=env, stdout=fh, stderr=subprocess.STDOUT)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed (exit {proc.returncode}); see {root / f'p{procs}.log'}")
+    overrides = [f"data.resolution={args.resolution}", f"neural.steps={args.steps}", *SHORT, *args.extra]
+    ran = run_config(args.config, out, overrides, env={"OMP_NUM_THREADS": "1"},
+                     command=[*launcher, str(REPO / "train.py")], log=root / f"p{procs}.log")
+    wall = ran["wall_s"]
     timing = json.loads((out / "timing.json").read_text())
     metrics = json.loads((out / "eval_test" / "metrics.json").read_text())
     return {"processes": procs, "wall_s": wall, "stage1_s": timing["geometry_s"],
             "stage2_s": timing["neural_steps_s"], "steps_per_s": args.steps / timing["neural_steps_s"],
             "test_psnr": metrics["psnr"], "test_ssim": metrics["ssim"], "points": metrics["points"],
-            "command": " ".join(cmd[len(launcher):])}
+            "command": f"train.py --config {args.config} " + " ".join(overrides)}
 
 
 def main() -> None:
@@ -85,15 +76,10 @@ def main() -> None:
                      f"{r['stage1_s']:.0f} | {r['wall_s']:.0f} | {r['test_psnr']['mean']:.2f} ± "
                      f"{r['test_psnr']['std']:.2f} | {r['test_ssim']['mean']:.4f} |")
     table = "\n".join(lines)
-    print(table)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / "distributed.json"
     config = args.config.relative_to(REPO) if args.config.is_relative_to(REPO) else args.config
-    out.write_text(json.dumps({"config": str(config), "resolution": args.resolution, "steps": args.steps,
-                               "overrides": SHORT + args.extra, "cores": os.cpu_count(),
-                               "load_before": load_before, "load_after": load_after, "rows": rows,
-                               "markdown": table}, indent=1))
-    print(f"\nwrote {out}")
+    write_result("distributed", {"config": str(config), "resolution": args.resolution, "steps": args.steps,
+                                 "overrides": SHORT + args.extra, "load_before": load_before,
+                                 "load_after": load_after, "rows": rows, "markdown": table}, table)
 
 
 if __name__ == "__main__":

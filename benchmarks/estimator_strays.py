@@ -1,6 +1,6 @@
 """Where the Chamfer gap between the gradient estimators comes from: accuracy or completeness, on or off the surface.
 
-Reads the final point clouds (``reconstruction.ply``) of an estimator sweep (``benchmarks/estimator_sweep.py``;
+Reads the final point clouds (``reconstruction.ply``) of an estimator sweep (:mod:`benchmarks.estimator_sweep`;
 its run folders under ``runs/bench/sweep-<setting>[-<tag>]/``) and splits each run's Chamfer distance into its
 two directions, in units of the ground truth's bounding-box diagonal D:
 
@@ -12,11 +12,11 @@ two directions, in units of the ground truth's bounding-box diagonal D:
 * what the points outside the surface look like: the median albedo (mean of the feature channels) and the
   median tangent std-dev (mean of the two, units of D) of the points on the surface (within ``--far``) and of
   those off it on the outside; with ``--contributions`` also their median visual contribution
-  (:func:`nsplat.fitting.point_contributions`, Σ over the run's training views of w·‖colour‖, the measure
+  (:func:`nsplat.fitting.reposition.point_contributions`, Σ over the run's training views of w·‖colour‖, the measure
   repositioning uses), from the run's final checkpoint.
 
-    python benchmarks/estimator_strays.py --setting cpu-long --shapes bunny teapot yoga1 yoga6
-    python benchmarks/estimator_strays.py --setting cpu-long --tag long128 --shapes bunny --lrs 0.01
+    python -m benchmarks.estimator_strays --setting cpu-long --shapes bunny teapot yoga1 yoga6
+    python -m benchmarks.estimator_strays --setting cpu-long --tag long128 --shapes bunny --lrs 0.01
 
 Writes ``benchmarks/results/estimator_strays-<setting>[-<tag>].json`` and prints a Markdown table. Runs whose
 folder is missing are skipped (the sweep's JSON keeps their metrics, not their points).
@@ -24,7 +24,6 @@ folder is missing are skipped (the sweep's JSON keeps their metrics, not their p
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -32,13 +31,11 @@ import numpy as np
 from plyfile import PlyData
 from scipy.spatial import cKDTree
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
+from benchmarks.common import REPO, write_result
+from benchmarks.estimator_sweep import load_run
+from nsplat.data.pointclouds import load_dss_shape
+from nsplat.fitting.reposition import point_contributions
 
-from nsplat.data.pointclouds import load_dss_shape  # noqa: E402
-
-RESULTS = REPO / "benchmarks" / "results"
 ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
 
 
@@ -71,9 +68,6 @@ def split_distances(points: np.ndarray, gt: np.ndarray, normals: np.ndarray, far
 
 def contributions(run_dir: Path) -> np.ndarray:
     """``[N]`` visual contribution of every point of the run's final scene over its training views."""
-    from estimator_sweep import load_run
-    from nsplat.fitting import point_contributions
-
     cfg, views, scene = load_run(run_dir)
     return point_contributions(scene, views.viewmats, views.Ks, cfg.data.width, cfg.data.height, cfg.render,
                                seed=cfg.seed).numpy()
@@ -127,12 +121,9 @@ def main() -> None:
                      f"{pair(r['scale_on'], r['scale_outside'])} | "
                      f"{pair(r['contribution_on'], r['contribution_outside'])} | {r['chamfer']:.4f} |")
     text = "\n".join(lines)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / f"estimator_strays-{args.setting}{'-' + args.tag if args.tag else ''}.json"
-    out.write_text(json.dumps({"command": "python benchmarks/estimator_strays.py " + " ".join(sys.argv[1:]),
-                               "far": args.far, "runs": rows, "markdown": text}, indent=1))
-    print(text)
-    print(f"\nwrote {out}")
+    write_result(f"estimator_strays-{args.setting}{'-' + args.tag if args.tag else ''}",
+                 {"command": "python -m benchmarks.estimator_strays " + " ".join(sys.argv[1:]), "far": args.far,
+                  "runs": rows, "markdown": text}, text)
 
 
 if __name__ == "__main__":

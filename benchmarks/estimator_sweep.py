@@ -2,7 +2,7 @@
 
 Every estimator (``ht``, ``ht-pips``, ``paper``, ``sampled``) is run with each learning rate of ``--lrs``
 (the rate of positions, normals, scales and features together) on each shape, at a Table-1 budget
-(``--setting`` of ``benchmarks/table1.py``). For each (shape, estimator) the rate is **selected on the final
+(``--setting`` of :mod:`benchmarks.table1`). For each (shape, estimator) the rate is **selected on the final
 training image loss** (the images the optimiser sees; the ground-truth geometry is never used to choose):
 the L1 loss of the final scene on all training views, rendered with the exact dense renderer
 (``train_loss_dense``, deterministic and the same measure for every estimator; the run's own
@@ -10,11 +10,11 @@ the L1 loss of the final scene on all training views, rendered with the exact de
 The selected run's Chamfer / Hausdorff distances to the ground-truth points are reported, and, for
 information only, the rate with the best Chamfer ("oracle", not a selection).
 
-    python benchmarks/estimator_sweep.py --shapes bunny teapot --jobs 1
-    python benchmarks/estimator_sweep.py --setting cpu-long --shapes bunny
-    python benchmarks/estimator_sweep.py --merge --jobs 1      # reuse the runs already in the JSON
-    python benchmarks/estimator_sweep.py --merge --lrs 0.3     # add a rate to the existing sweep
-    python benchmarks/estimator_sweep.py optim.batch=24 optim.epochs=80 optim.reposition_every=20 \
+    python -m benchmarks.estimator_sweep --shapes bunny teapot --jobs 1
+    python -m benchmarks.estimator_sweep --setting cpu-long --shapes bunny
+    python -m benchmarks.estimator_sweep --merge --jobs 1      # reuse the runs already in the JSON
+    python -m benchmarks.estimator_sweep --merge --lrs 0.3     # add a rate to the existing sweep
+    python -m benchmarks.estimator_sweep optim.batch=24 optim.epochs=80 optim.reposition.every=20 \
         --tag fullbatch --shapes bunny --estimators ht sampled --lrs 0.03 0.1   # a variant of the budget
 
 ``--merge`` loads ``benchmarks/results/estimator_sweep-<setting>.json`` and reuses its records (its runs'
@@ -31,29 +31,33 @@ Chamfer / Hausdorff at its ``log.validate`` steps, while its folder exists) and 
 """
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
+import logging
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from table1 import RESULTS, SETTINGS, SHAPES, common_args, fmt, learning_rate, prepare_gt, run_one  # noqa: E402
+from benchmarks.common import RESULTS, machine
+from benchmarks.table1 import SETTINGS, SHAPES, common_args, fmt, learning_rate, prepare_gt, run_one
+from nsplat import render as gateway
+from nsplat.config import load_config, read_yaml
+from nsplat.data.dss import gt_views
+from nsplat.data.pointclouds import load_dss_shape
+from nsplat.engine import write_json
+from nsplat.runctx import RunContext
+from nsplat.shading import lambert
+from nsplat.tasks.reconstruct import Config, restore
 
 ESTIMATORS = ("ht", "ht-pips", "paper", "sampled")
-REPO = RESULTS.parents[1]
 
 
 def load_run(run_dir: Path):
     """A finished reconstruction run: ``(config, its training views (GT images), its final scene)``, on the CPU."""
-    import torch
-
-    sys.path.insert(0, str(REPO))
-    from nsplat.config import load_config, read_yaml
-    from nsplat.data.dss import gt_views
-    from nsplat.data.pointclouds import load_dss_shape
-    from nsplat.runctx import RunContext
-    from nsplat.tasks.reconstruct import Config, restore
-
     cfg = load_config(Config, read_yaml(run_dir / "config.yaml"))
     views = gt_views(load_dss_shape(cfg.data.shape, cfg.data.root or None), cfg.data, cfg.render, cfg.data.views)
     return cfg, views, restore(cfg, RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=cfg.seed))
@@ -69,13 +73,6 @@ def dense_train_loss(run_dir: Path) -> float | None:
         return json.loads(cache.read_text())["train_loss_dense"]
     if not (run_dir / "checkpoints" / "latest").is_file():
         return None
-    import dataclasses
-
-    import torch
-
-    from nsplat import render as gateway
-    from nsplat.shading import lambert
-
     cfg, views, scene = load_run(run_dir)
     dense = dataclasses.replace(cfg.render, renderer="dense")
     with torch.no_grad():
@@ -89,8 +86,6 @@ def dense_train_loss(run_dir: Path) -> float | None:
 
 
 def main() -> None:
-    import argparse
-
     extra = argparse.ArgumentParser(add_help=False)
     extra.add_argument("--lrs", nargs="+", type=float, default=[0.01, 0.03, 0.1])
     extra.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS))
@@ -118,8 +113,6 @@ def main() -> None:
               flush=True)
     if not args.collect_only and todo:
         prepare_gt(todo, args)
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         runs = {name: with_dense_loss(r, table) for name, r in reused.items()}
 
@@ -145,10 +138,6 @@ def validation_curve(run_dir: Path) -> list[list[float]] | None:
     scalars, the last write of each step when a run was resumed); ``None`` when the run folder is gone."""
     if not (run_dir / "tb").is_dir():
         return None
-    import logging
-
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
     logging.getLogger("tensorboard").setLevel(logging.ERROR)  # a resumed run's purge notice is expected
     events = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
     events.Reload()
@@ -254,8 +243,9 @@ def write(path: Path, args, known, previous: dict, runs: dict, reused: dict, not
             del payload["reused_overrides"]
     if note:
         payload["note"] = note
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(payload, indent=1))
+    payload["machine"] = machine()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, payload)
     return text
 
 

@@ -16,26 +16,24 @@ draws), it draws ``groups × per_group`` sampled gradients of a fixed linear los
 
 Usage::
 
-    python benchmarks/estimators.py                      # full table -> benchmarks/results/estimators.json
-    python benchmarks/estimators.py --quick              # fewer draws, for a smoke run
+    python -m benchmarks.estimators                      # full table -> benchmarks/results/estimators.json
+    python -m benchmarks.estimators --quick              # fewer draws, for a smoke run
 """
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks.common import IMAGES, write_result
 from nsplat.cameras import look_at
 from nsplat.data.pointclouds import load_dss_shape
 from nsplat.ops.diagnostics import estimator_study
 
-ROOT = Path(__file__).resolve().parent
 VARIANTS = (("sampled", False), ("paper", False), ("ht-pips", False), ("ht", False), ("ht", True))
 
 
@@ -165,13 +163,9 @@ def main() -> None:
         args.per_group = 10
     t0 = time.time()
     rows = run(args)
-    meta = dict(command="python benchmarks/estimators.py " + " ".join(os.sys.argv[1:]), wall_s=time.time() - t0,
-                load=os.getloadavg(), machine=platform.processor() or platform.machine(), threads=1,
-                torch=torch.__version__)
-    out = ROOT / "results" / f"{args.name}.json"
-    out.write_text(json.dumps(dict(meta=meta, rows=rows, markdown=markdown(rows)), indent=1))
-    plot(rows, ROOT.parent / "docs" / "images" / "estimators" / f"{args.name}.png")
-    print(f"wrote {out}")
+    meta = dict(command="python -m benchmarks.estimators " + " ".join(sys.argv[1:]), wall_s=time.time() - t0)
+    write_result(args.name, dict(meta=meta, rows=rows, markdown=markdown(rows)))
+    plot(rows, IMAGES / "estimators" / f"{args.name}.png")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""What the few largest surfels cost the sampler (issue 28: why stage-1 steps slow down as a fit converges).
+"""What the few largest surfels cost the sampler: why stage-1 steps slow down as a fit converges.
 
 For each fitted scene (a neural run's ``geometry.ply``) renders 10 training views (every 6th) with the op, after
 one warm-up render, keeping every surfel or only those whose larger tangent std is below each ``--caps``
@@ -7,38 +7,30 @@ pixel (the op's ``work``) and where the evaluations the large surfels add go: th
 that are empty (total size measure below the op's floor) once those surfels are removed, i.e. background
 pixels reached only by the tails of the large kernels.
 
-    python benchmarks/large_surfel_cost.py runs/ttq/lego/point-42ep-norepo-s0/geometry.ply \\
-        runs/ttq/lego/point-54ep-norepo-s0/geometry.ply runs/ttq/lego/point-54ep-norepo-s1/geometry.ply
+    python train.py --config configs/lego_splat_only.yaml --run runs/lego_splat_only   # the surfels (30 min)
+    python train.py --config configs/lego_splat_only.yaml --run runs/lego_nocap geometry.optim.max_scale=0
+    python -m benchmarks.large_surfel_cost runs/lego_nocap/geometry.ply runs/lego_splat_only/geometry.ply
 
 Prints a table and writes ``benchmarks/results/large_surfel_cost.json``.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import write_result
+from benchmarks.fitted import load_fitted
+from nsplat.render import render
+from nsplat.sh import view_colour
 
 
 def measure(ply: str, config: str, caps: list[float]) -> list[dict]:
-    from nsplat.config import load_config, read_yaml
-    from nsplat.render import render
-    from nsplat.scene import SurfelScene
-    from nsplat.sh import view_colour
-    from nsplat.tasks.neural import load_views
-    from nsplat.tasks.neural_config import Config
-    from nsplat.tasks.neural_init import geometry_scene_config
-
-    cfg = load_config(Config, read_yaml(config), [])
-    views = load_views(cfg, "train", torch.device("cpu"))
-    scene = SurfelScene.load_ply(ply, geometry_scene_config(cfg))
+    fitted = load_fitted(config, ply, splits=("train",))
+    cfg, views, scene = fitted.cfg, fitted.train, fitted.load()
     largest = scene.scales.detach().max(1).values
     median = float(largest.median())
     rows = []
@@ -91,10 +83,8 @@ def main() -> None:
         share = "" if r["extra_share_at_empty_pixels"] is None else f"{100 * r['extra_share_at_empty_pixels']:.1f} %"
         print(f"| {Path(r['ply']).parent.name} | {cap} | {r['removed']} | {r['ms_per_view']:.0f} | "
               f"{r['work_per_pixel']:.1f} | {share} |")
-    out = ROOT / "benchmarks" / "results" / "large_surfel_cost.json"
-    out.write_text(json.dumps({"meta": {"threads": torch.get_num_threads(), "load": os.getloadavg(),
-                                        "config": args.config}, "rows": rows}, indent=1, default=str))
-    print(f"wrote {out}")
+    write_result("large_surfel_cost", {"config": args.config,
+                                       "rows": [{**r, "cap": str(r["cap"])} for r in rows]})
 
 
 if __name__ == "__main__":

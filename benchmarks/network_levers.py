@@ -1,31 +1,30 @@
-"""Compute levers for the stage-2 networks on this CPU (issue 28): float32 eager against bfloat16 autocast
+"""Compute levers for the stage-2 networks on this CPU: float32 eager against bfloat16 autocast
 and ``torch.compile``, for the U-Net shader and the PatchGAN discriminator at the shipped sizes.
 
 A lever is worth shipping only if a training step gets cheaper (the step's other costs, the op, stay
 float32 either way). The table gives the forward+backward seconds of each network (batch 2, 2 threads),
 the one-off compile time, and the largest output difference against float32 eager.
 
-    python benchmarks/network_levers.py                  # both shipped sizes (default 64², lego 200²)
-    python benchmarks/network_levers.py --sizes 64 --reps 5
+    python -m benchmarks.network_levers                  # both shipped sizes (default 64², lego 200²)
+    python -m benchmarks.network_levers --sizes 64 --reps 5
 
 Writes ``benchmarks/results/network_levers.json`` (with the CPU capability and the load average).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
-from pathlib import Path
 
 import torch
 
+from benchmarks.common import REPO, write_result
+from nsplat.config import load_config, read_yaml
 from nsplat.models import PatchDiscriminator, UNet
+from nsplat.tasks.neural.config import Config
 
-RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
-#: (image side, U-Net depth, width, max width) of the shipped configs.
-SIZES = {64: (4, 32, 128), 200: (5, 32, 256)}
-C = 17  # 16 features + coverage
+#: Image side → the shipped config whose networks run at it.
+SIZES = {64: "default.yaml", 200: "lego.yaml"}
 
 
 def _step(net: torch.nn.Module, args: tuple[torch.Tensor, ...], bf16: bool) -> torch.Tensor:
@@ -45,13 +44,12 @@ def _time(net: torch.nn.Module, args: tuple[torch.Tensor, ...], bf16: bool, reps
 
 
 def measure(side: int, reps: int) -> list[dict]:
-    depth, width, max_width = SIZES[side]
+    n = load_config(Config, read_yaml(REPO / "configs" / SIZES[side])).neural
+    C = n.features + int(n.alpha_input)  # the feature image the networks see
     g = torch.Generator().manual_seed(0)
     cond = torch.randn(2, C, side, side, generator=g).contiguous(memory_format=torch.channels_last)
     rgb = torch.rand(2, 3, side, side, generator=g).contiguous(memory_format=torch.channels_last)
-    nets = {"unet": (UNet(C, 3, depth=depth, width=width, max_width=max_width, norm="group", upsample="bilinear"),
-                     (cond,)),
-            "discriminator": (PatchDiscriminator(C, 3, width=32, layers=3, norm="instance"), (cond, rgb))}
+    nets = {"unet": (UNet(C, 3, n.unet), (cond,)), "discriminator": (PatchDiscriminator(C, 3, n.gan), (cond, rgb))}
     rows = []
     for name, (net, args) in nets.items():
         net = net.to(memory_format=torch.channels_last)
@@ -84,10 +82,8 @@ def main() -> None:
     for r in rows:
         print(f"| {r['net']} | {r['side']} | {r['lever']} | {r['step_s']:.3f} | {r['ratio']:.2f} | "
               f"{r['max_abs_diff']:.2e} | {r.get('compile_s', float('nan')):.0f} |")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "network_levers.json").write_text(json.dumps(
-        {"capability": torch.backends.cpu.get_cpu_capability(), "threads": 2, "load_before": load,
-         "load_after": os.getloadavg(), "rows": rows}, indent=1))
+    write_result("network_levers", {"capability": torch.backends.cpu.get_cpu_capability(), "threads": 2,
+                                    "load_before": load, "rows": rows})
 
 
 if __name__ == "__main__":

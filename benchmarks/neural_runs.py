@@ -12,7 +12,7 @@ behind — ``history.json`` (train/val PSNR over stage-2 steps), ``eval_<split>/
 and prints a Markdown table (with the full val split's metrics where ``python train.py eval --run DIR --split
 val`` has written ``eval_val/``).
 
-    python benchmarks/neural_runs.py --name lego-200 --split test \\
+    python -m benchmarks.neural_runs --name lego-200 --split test \\
         40k=runs/lego-40k final=runs/lego --views 4
 """
 from __future__ import annotations
@@ -23,16 +23,14 @@ import sys
 from pathlib import Path
 
 import imageio.v3 as iio
-import matplotlib
+import numpy as np
+import yaml
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import yaml  # noqa: E402
+from benchmarks.common import IMAGES as ALL_IMAGES
+from benchmarks.common import write_result
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-IMAGES = REPO / "docs" / "images" / "neural"
+IMAGES = ALL_IMAGES / "neural"
 
 
 def _read(path: Path) -> dict | None:
@@ -106,7 +104,7 @@ def save(fig, path: Path, title: str) -> None:
 
 def figure(rows: list[dict], split: str, views: int, path: Path, title: str) -> None:
     """The last run's held-out views (render, ground truth, error) above every run's PSNR curves."""
-    fig = plt.figure(figsize=(3 * max(views, 2), 9.5))
+    fig = Figure(figsize=(3 * max(views, 2), 9.5))
     view_grid(fig, Path(rows[-1]["run"]), rows[-1]["per_view"][:views], split)
     plot_curves(fig.add_subplot(4, 1, 4), [(r["label"], r["history"]) for r in rows])
     save(fig, path, title)
@@ -124,15 +122,11 @@ def main() -> None:
         label, _, folder = spec.partition("=")
         rows.append(summary(label, Path(folder), args.split))
     text = table(rows, args.split)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / f"neural_runs-{args.name}.json"
-    out.write_text(json.dumps({"command": "python benchmarks/neural_runs.py " + " ".join(sys.argv[1:]),
-                               "runs": [{k: v for k, v in r.items() if k != "per_view"} for r in rows],
-                               "markdown": text}, indent=1))
+    write_result(f"neural_runs-{args.name}", {"command": "python -m benchmarks.neural_runs " + " ".join(sys.argv[1:]),
+                                              "runs": [{k: v for k, v in r.items() if k != "per_view"} for r in rows],
+                                              "markdown": text}, text)
     figure(rows, args.split, args.views, IMAGES / f"{args.name}.png",
            f"{args.name}: {rows[-1]['label']} on held-out {args.split} views; PSNR over stage-2 steps")
-    print(text)
-    print(f"wrote {out} and {IMAGES / (args.name + '.png')}")
 
 
 if __name__ == "__main__":

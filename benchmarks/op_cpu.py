@@ -1,15 +1,16 @@
 """CPU op benchmark: forward+backward time and peak memory vs N, resolution and samples; speed-up over the
 dense oracle; log-log slopes.
 
-    python benchmarks/op_cpu.py            # full sweep (N 1k–1M, 32²–512², samples 1–64), ~10 min on 2 cores
-    python benchmarks/op_cpu.py --quick    # small sweep
+    python -m benchmarks.op_cpu            # full sweep (N 1k–1M, 32²–512², samples 1–64), ~10 min on 2 cores
+    python -m benchmarks.op_cpu --quick    # small sweep
+    python -m benchmarks.op_cpu --smoke    # one tiny configuration of each sweep (CI)
 
 Scene: N surfels covering a unit sphere (tangent std-dev 0.7× the point spacing, opacity 0.8, RGB features)
 seen from distance 3 with a 50° field of view, so both the front and the back layer project into the image.
 Each configuration runs in a fresh subprocess (peak RSS is per configuration); timings are the median of
 `--repeats` runs after one warm-up, wall clock with all cores (torch threads = cores) and process CPU time.
 The dense oracle is O(N·pixels) in time and memory, so it is timed on a band of image rows and scaled by
-the pixel ratio (stated in the output). Writes benchmarks/results/op_cpu.json.
+the pixel ratio (stated in the output). Writes benchmarks/results/op_cpu.json (:mod:`benchmarks.common`).
 """
 from __future__ import annotations
 
@@ -17,15 +18,13 @@ import argparse
 import json
 import math
 import os
-import platform
 import resource
 import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from benchmarks.common import REPO, write_result
 
 
 def scene(N: int, res: int):
@@ -79,8 +78,9 @@ def one(N: int, res: int, samples: int, repeats: int, dense_rows: int) -> dict:
 
 
 def run_sub(N: int, res: int, samples: int, repeats: int, dense_rows: int = 0) -> dict:
-    cmd = [sys.executable, __file__, "--one", str(N), str(res), str(samples), str(repeats), str(dense_rows)]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    cmd = [sys.executable, "-m", "benchmarks.op_cpu", "--one", str(N), str(res), str(samples), str(repeats),
+           str(dense_rows)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=REPO)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -102,31 +102,32 @@ def table(rows: list[dict], key: str) -> str:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--smoke", action="store_true", help="one tiny configuration per sweep (CI; not a result)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--one", nargs=5, type=int, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.one:
         print(json.dumps(one(*args.one)))
         return 0
-    if args.quick:
+    target_n, target_res = 20000, 128
+    if args.smoke:
+        Ns, ress, samples, target_n, target_res = [500, 1000], [16, 32], [1, 8], 1000, 32
+    elif args.quick:
         Ns, ress, samples = [1000, 4000, 16000], [32, 64, 128], [1, 8, 40]
     else:
         Ns, ress, samples = [1000, 4000, 16000, 64000, 256000, 1000000], [32, 64, 128, 256, 512], [1, 4, 16, 40, 64]
-    target = run_sub(20000, 128, 40, args.repeats, dense_rows=16)
-    by_n = [run_sub(n, 128, 40, args.repeats) for n in Ns]
-    by_res = [run_sub(20000, r, 40, args.repeats) for r in ress]
-    by_m = [run_sub(20000, 128, m, args.repeats) for m in samples]
+    target = run_sub(target_n, target_res, 40, args.repeats, dense_rows=16)
+    by_n = [run_sub(n, target_res, 40, args.repeats) for n in Ns]
+    by_res = [run_sub(target_n, r, 40, args.repeats) for r in ress]
+    by_m = [run_sub(target_n, target_res, m, args.repeats) for m in samples]
     big_n = by_n[-3:]  # the slope over the three largest N (small N is dominated by fixed costs)
     result = dict(
-        machine=dict(cpus=os.cpu_count(), platform=platform.platform(), python=platform.python_version(),
-                     load_avg=os.getloadavg()),
         target=target, by_N=by_n, by_resolution=by_res, by_samples=by_m,
         slope_time_vs_N=slope([r["N"] for r in big_n], [r["total_s"] for r in big_n]),
         slope_time_vs_pixels=slope([r["res"] ** 2 for r in by_res], [r["total_s"] for r in by_res]),
     )
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "op_cpu.json").write_text(json.dumps(result, indent=2))
-    print(f"target N=20000 128² samples=40: fwd+bwd {target['total_s']:.3f}s (CPU {target['cpu_s']:.3f}s), "
+    write_result("op_cpu", result)
+    print(f"target N={target_n} {target_res}² samples=40: fwd+bwd {target['total_s']:.3f}s (CPU {target['cpu_s']:.3f}s), "
           f"dense {target['dense_s_extrapolated']:.1f}s (from {target['dense_rows']} rows) → "
           f"speed-up {target['speedup_vs_dense']:.0f}×")
     print("\nvs N (128², samples 40)\n" + table(by_n, "N"))

@@ -13,8 +13,8 @@ depth complexity per pixel stays about constant):
     (its CUDA code is JIT-compiled on first use; ``--gsplat off`` skips it).
 
 Usage (on a machine with a CUDA device):
-    python benchmarks/op_cuda.py                 # full sweep → benchmarks/results/op_cuda.json + a table
-    python benchmarks/op_cuda.py --quick         # a few small points (smoke test)
+    python -m benchmarks.op_cuda                 # full sweep → benchmarks/results/op_cuda.json + a table
+    python -m benchmarks.op_cuda --quick         # a few small points (smoke test)
 ``--device cpu --tiny --out /tmp/x.json`` exercises the script without a GPU (tiny sizes, no memory figures,
 no gsplat); its numbers are not results.
 """
@@ -24,7 +24,6 @@ import argparse
 import datetime
 import json
 import math
-import os
 import platform
 import statistics
 import sys
@@ -34,10 +33,8 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from nsplat.ops import project, sample, splat, tangent_frame  # noqa: E402
+from benchmarks.common import RESULTS, machine
+from nsplat.ops import project, sample, splat, tangent_frame
 
 MB = 2**20
 
@@ -209,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gsplat", choices=("auto", "off"), default="auto")
     ap.add_argument("--sections", default="N,res,m,cpu,gsplat",
                     help="comma-separated subset of N (sweep over N), res, m, cpu (CUDA vs CPU), gsplat")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "op_cuda.json"))
+    ap.add_argument("--out", default=str(RESULTS / "op_cuda.json"))
     args = ap.parse_args(argv)
     sections = set(args.sections.split(","))
     device = torch.device(args.device)
@@ -229,11 +226,12 @@ def main(argv: list[str] | None = None) -> int:
         mid_n, cpu_case, gs_sizes, base = 1_000_000, (30_000, 256, 256, 16), [100_000, 1_000_000, 4_000_000], (512, 512)
 
     result: dict = dict(
-        command="python benchmarks/op_cuda.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip(),
+        command="python -m benchmarks.op_cuda" + (" " + " ".join(argv if argv is not None else sys.argv[1:])).rstrip(),
         date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         torch=torch.__version__, python=platform.python_version(), reps=args.reps,
         device=torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "cpu",
-        cpu_threads=torch.get_num_threads(), dtype="float32", scene="unit sphere of N surfels, one camera at 3")
+        cpu_threads=torch.get_num_threads(), dtype="float32", scene="unit sphere of N surfels, one camera at 3",
+        machine=machine())
     if device.type == "cuda":
         result["cuda"] = torch.version.cuda
 

@@ -1,11 +1,11 @@
 """Where the CUDA op's time goes: per-kernel GPU time of one forward+backward (torch.profiler, CUPTI).
 
-Runs ``splat`` forward + backward on the sphere scene of ``benchmarks/op_cuda.py`` (one camera, float32) for
+Runs ``splat`` forward + backward on the sphere scene of :mod:`benchmarks.op_cuda` (one camera, float32) for
 each requested size, after a warm-up, under ``torch.profiler`` and prints the kernels sorted by total GPU
 time, with the share of the whole; ``--out`` writes them as JSON.
 
 Usage (on a machine with a CUDA device):
-    python benchmarks/op_cuda_profile.py --sizes 10000,1000000 --out benchmarks/results/op_cuda_profile.json
+    python -m benchmarks.op_cuda_profile --sizes 10000,1000000 --out benchmarks/results/op_cuda_profile.json
 """
 from __future__ import annotations
 
@@ -18,11 +18,9 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.op_cuda import camera, sphere_scene  # noqa: E402
-from nsplat.ops import splat  # noqa: E402
+from benchmarks.common import machine
+from benchmarks.op_cuda import camera, sphere_scene
+from nsplat.ops import splat
 
 
 def profile_case(N: int, width: int, height: int, samples: int, reps: int) -> dict:
@@ -70,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         print("op_cuda_profile: no CUDA device")
         return 2
     result = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                  device=torch.cuda.get_device_name(), torch=torch.__version__, cases=[])
+                  device=torch.cuda.get_device_name(), torch=torch.__version__, machine=machine(), cases=[])
     for N in (int(s) for s in args.sizes.split(",")):
         case = profile_case(N, args.width, args.height, args.samples, args.reps)
         result["cases"].append(case)

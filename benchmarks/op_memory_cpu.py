@@ -12,7 +12,8 @@ the per-slot cost, which is compared with the bound's 24 bytes per slot.
 sort used on other devices (``nsplat.ops.library._entries_by_point_sorted``) for comparison.
 Scene: ``benchmarks/op_cpu.py``'s sphere. Writes ``benchmarks/results/op_memory_cpu.json``.
 
-    python benchmarks/op_memory_cpu.py
+    python -m benchmarks.op_memory_cpu
+    python -m benchmarks.op_memory_cpu --smoke    # one small configuration (CI; not a result)
 """
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from benchmarks.common import REPO, write_result
+
 CONFIGS = [(20_000, 128, 40), (20_000, 256, 40), (100_000, 256, 64), (100_000, 512, 40)]
 
 
@@ -39,7 +41,7 @@ def one(N: int, res: int, samples: int, order: str) -> dict:
 
     from nsplat.ops import library, splat
     from nsplat.ops.build import backend
-    from op_cpu import scene
+    from benchmarks.op_cpu import scene
 
     backend(torch.device("cpu"))
     if order == "sorted":
@@ -61,18 +63,19 @@ def one(N: int, res: int, samples: int, order: str) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--one", nargs=4, metavar=("N", "RES", "SAMPLES", "ORDER"), help=argparse.SUPPRESS)
+    p.add_argument("--smoke", action="store_true", help="one small configuration (CI; not a result)")
     args = p.parse_args()
     if args.one:
         n, res, m, order = args.one
         print(json.dumps(one(int(n), int(res), int(m), order)))
         return
     def measure(N: int, res: int, m: int, order: str) -> dict:
-        out = subprocess.run([sys.executable, __file__, "--one", str(N), str(res), str(m), order], check=True,
-                             capture_output=True, text=True, cwd=Path(__file__).parent)
+        out = subprocess.run([sys.executable, "-m", "benchmarks.op_memory_cpu", "--one", str(N), str(res), str(m),
+                              order], check=True, capture_output=True, text=True, cwd=REPO)
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     rows = []
-    for N, res, m in CONFIGS:
+    for N, res, m in [(2_000, 32, 8)] if args.smoke else CONFIGS:
         for order in ("native", "sorted"):
             r = measure(N, res, m, order)
             r["per_point_bytes"] = measure(N, 8, m, order)["extra_bytes"]
@@ -87,11 +90,7 @@ def main() -> None:
                      f"{r['extra_bytes'] / 2**20:.0f} | {r['per_point_bytes'] / 2**20:.0f} | "
                      f"{r['bytes_per_slot']:.1f}{'' if r['within_bound'] else ' (over)'} |")
     table = "\n".join(lines)
-    print(table)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / "op_memory_cpu.json"
-    path.write_text(json.dumps({"rows": rows, "markdown": table}, indent=1))
-    print(f"\nwrote {path}")
+    write_result("op_memory_cpu", {"rows": rows, "markdown": table}, table)
 
 
 if __name__ == "__main__":

@@ -5,8 +5,8 @@ domain of docs/op.md, edges included) with a numpy RNG, runs forward and backwar
 property and writes the count, timing and any failures (with the seed that reproduces each) to
 ``benchmarks/results/properties_soak.json``.
 
-    OMP_NUM_THREADS=1 python benchmarks/properties_soak.py --scenes 10000
-    python benchmarks/properties_soak.py --replay 1234      # re-run one failing scene verbosely
+    OMP_NUM_THREADS=1 python -m benchmarks.properties_soak --scenes 10000
+    python -m benchmarks.properties_soak --replay 1234      # re-run one failing scene verbosely
 
 It also runs one-dimensional sweeps to the domain's edges (splat screen size × low-pass, world
 offset, depth scale, opacity, focal length, culled points, image size) and stores, per value,
@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import sys
 import time
 import traceback
 from collections import Counter
@@ -27,9 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from tests.test_op_properties import Draw, check_case, describe, draw_case  # noqa: E402
+from benchmarks.common import RESULTS, machine
+from tests.test_op_properties import Draw, check_case, describe, draw_case
 
 
 # ---------------------------------------------------------------------------------------- domain edges
@@ -138,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-size", type=int, default=10)
     p.add_argument("--replay", type=int, default=None, help="run only this seed and print the case")
     p.add_argument("--no-edges", action="store_true", help="skip the one-dimensional domain-edge sweeps")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "properties_soak.json")
+    p.add_argument("--out", type=Path, default=RESULTS / "properties_soak.json")
     args = p.parse_args(argv)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # tests.conftest sets 2
     if args.replay is not None:
@@ -170,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
         "scenes": args.scenes, "first_seed": args.first_seed, "max_points": args.max_points,
         "max_size": args.max_size, "failing_scenes": len(failures), "violations": dict(kinds),
         "failures": failures[:200], "wall_s": round(wall, 1), "process_time_s": round(cpu, 1),
-        "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
-        "draws": dict(sorted(stats.items())), "edges": edges,
+        "threads": torch.get_num_threads(), "torch": torch.__version__,
+        "draws": dict(sorted(stats.items())), "edges": edges, "machine": machine(),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))

@@ -16,13 +16,25 @@ Each scene is the surfels ``means, normals, scales, opacities [N]`` of a task pl
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+from benchmarks.common import REPO as ROOT
+from nsplat.config import load_config, read_yaml
+from nsplat.data import dss
+from nsplat.data.pointclouds import load_dss_shape
+from nsplat.engine import LogConfig
+from nsplat.fitting import fit
+from nsplat.scene import SceneConfig, SurfelScene
+from nsplat.tasks import reconstruct
+from nsplat.tasks.neural.config import Config as NeuralConfig
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.geometry import initial_geometry
+from nsplat.tasks.neural.model import neural_scene_from
+
 CACHE = ROOT / "data_cache" / "sampler_scenes"
 
 
@@ -41,20 +53,11 @@ ISSUE_LEGO = ["geometry.grid=160", "geometry.max_points=40000", "geometry.optim.
 
 
 def _neural(config: str, overrides: list[str]):
-    from nsplat.config import load_config, read_yaml
-    from nsplat.tasks import neural
-
-    cfg = load_config(neural.Config, read_yaml(ROOT / "configs" / config), overrides)
-    train = neural.load_views(cfg, "train", torch.device("cpu"))
-    return cfg, train, neural
+    cfg = load_config(NeuralConfig, read_yaml(ROOT / "configs" / config), overrides)
+    return cfg, load_views(cfg, "train", torch.device("cpu"))
 
 
-def _fit(neural, cfg, train, scene, epochs: int, views: int | None, tag: str) -> None:
-    import dataclasses
-
-    from nsplat.engine import LogConfig
-    from nsplat.fitting import fit
-
+def _fit(cfg, train, scene, epochs: int, views: int | None, tag: str) -> None:
     n = views or train.images.shape[0]
     ocfg = dataclasses.replace(cfg.geometry.optim, epochs=epochs)
     fit(scene, train.subset(list(range(n))), ocfg, cfg.render, ROOT / "runs" / f"_sampler_{tag}", seed=0,
@@ -62,40 +65,34 @@ def _fit(neural, cfg, train, scene, epochs: int, views: int | None, tag: str) ->
 
 
 def make_default(epochs: int) -> None:
-    cfg, train, neural = _neural("default.yaml", ISSUE_DEFAULT)
-    scene = neural.initial_geometry(cfg, train, 0)
-    _fit(neural, cfg, train, scene, epochs, None, "default")
+    cfg, train = _neural("default.yaml", ISSUE_DEFAULT)
+    scene = initial_geometry(cfg, train, 0)
+    _fit(cfg, train, scene, epochs, None, "default")
     keep = scene.opacities >= cfg.geometry.prune_opacity
-    scene = neural.neural_scene_from(cfg, scene, 0)
+    scene = neural_scene_from(cfg, scene, 0)
     H, W = train.images.shape[1:3]
     _save("default_fit", scene, train.viewmats[0], train.Ks[0], W, H, pruned=int((~keep).sum()), epochs=epochs)
 
 
 def make_lego(steps: int) -> None:
-    cfg, train, neural = _neural("lego.yaml", ISSUE_LEGO)
-    scene = neural.initial_geometry(cfg, train, 0)
+    cfg, train = _neural("lego.yaml", ISSUE_LEGO)
+    scene = initial_geometry(cfg, train, 0)
     H, W = train.images.shape[1:3]
     _save("lego_hull", scene, train.viewmats[0], train.Ks[0], W, H)
     if steps > 0:
         views = steps * cfg.geometry.optim.batch
-        _fit(neural, cfg, train, scene, 1, views, "lego")
+        _fit(cfg, train, scene, 1, views, "lego")
         _save("lego_fit", scene, train.viewmats[0], train.Ks[0], W, H, fit_views=views)
 
 
 def make_lego20k() -> None:
-    cfg, train, neural = _neural("lego.yaml", [])
-    scene = neural.initial_geometry(cfg, train, 0)
+    cfg, train = _neural("lego.yaml", [])
+    scene = initial_geometry(cfg, train, 0)
     H, W = train.images.shape[1:3]
     _save("lego20k_hull", scene, train.viewmats[0], train.Ks[0], W, H)
 
 
 def make_bunny() -> None:
-    from nsplat.config import load_config, read_yaml
-    from nsplat.data.pointclouds import load_dss_shape
-    from nsplat.scene import SceneConfig, SurfelScene
-    from nsplat.data import dss
-    from nsplat.tasks import reconstruct
-
     cfg = load_config(reconstruct.Config, read_yaml(ROOT / "configs" / "reconstruct_bunny.yaml"))
     pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
     gt = dss.gt_scene(pc, cfg.data)

@@ -15,14 +15,12 @@ Three stages, all on the CPU at low resolution:
 
 Writes ``benchmarks/results/refine_lego.json`` and before/after images to ``docs/images/refine/``.
 
-    OMP_NUM_THREADS=2 python benchmarks/refine_lego.py [--resolution 64 --frames 24]
+    OMP_NUM_THREADS=2 python -m benchmarks.refine_lego [--resolution 64 --frames 24]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -31,14 +29,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from nsplat.data.paths import data_root  # noqa: E402
-from nsplat.data.nerf_synthetic import load_split  # noqa: E402
-from nsplat.scene import SceneConfig, SurfelScene  # noqa: E402
+from benchmarks.common import IMAGES as ALL_IMAGES
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import run_config, write_result
+from nsplat.data.nerf_synthetic import load_split
+from nsplat.data.paths import data_root
+from nsplat.scene import SceneConfig, SurfelScene
 
-RESULTS = ROOT / "benchmarks" / "results"
-IMAGES = ROOT / "docs" / "images" / "refine"
+IMAGES = ALL_IMAGES / "refine"
 LEGO = data_root() / "nerf_synthetic" / "lego_400"
 
 
@@ -81,10 +79,8 @@ def carve(grid: int, resolution: int, bound: float = 1.3) -> dict[str, torch.Ten
 
 
 def run_task(run_dir: Path, overrides: list[str]) -> dict:
-    cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(ROOT / "configs" / "refine_room.yaml"),
-           "--run", str(run_dir), "--device", "cpu", *overrides]
     t = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=ROOT)
+    run_config(ROOT / "configs" / "refine_room.yaml", run_dir, ["--device", "cpu", *overrides])
     init = json.loads((run_dir / "metrics_initial.json").read_text())
     final = json.loads((run_dir / "metrics_final.json").read_text())
     return {"run_dir": str(run_dir.relative_to(ROOT)), "initial": init, "final": final, "overrides": overrides,
@@ -126,8 +122,7 @@ def main() -> None:
         f"optim.decay_every={max(1, args.pose_steps // 3)}", f"log.checkpoint={args.pose_steps}"])
     total = time.perf_counter() - t0
     out = {"args": vars(args), "hull_points": n, "carve_s": t_carve, "fit": fit, "pose": pose, "total_s": total}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "refine_lego.json").write_text(json.dumps(out, indent=1))
+    write_result("refine_lego", out)
     # before/after images: reference | before | after | |before-ref| | |after-ref|
     v = load_split(LEGO, "train", resolution=args.resolution, limit=args.frames)
     before = torch.load(base / "pose" / "renders_initial.pt")

@@ -5,10 +5,10 @@ gradient estimator (``ht`` and ``sampled``), each in its own process (so peak RS
 prints a table, writes ``benchmarks/results/refine_room.json`` and before/after images to
 ``docs/images/refine/``.
 
-    OMP_NUM_THREADS=2 python benchmarks/refine_room.py [--steps 150] [--width 64 --height 48]
+    OMP_NUM_THREADS=2 python -m benchmarks.refine_room [--steps 150] [--width 64 --height 48]
         [--estimators ht sampled] [--set key=value ...] [--name refine_room]
 
-Pose errors are reported three ways (``nsplat.poses.pose_report``): absolute against the ground truth,
+Pose errors are reported three ways (:func:`nsplat.tasks.refine.poses.pose_report`): absolute against the ground truth,
 after removing the rigid offset common to all cameras (with a learnable scene, scene and cameras can
 move together without changing any image; docs/results.md measures how much of that offset is this
 gauge freedom), and as relative pose errors over all camera pairs (no fitted alignment at all).
@@ -21,17 +21,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
-IMAGES = ROOT / "docs" / "images" / "refine"
+from benchmarks.common import IMAGES as ALL_IMAGES
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import read_result, run_config, write_result
+from nsplat.config import read_yaml
+from nsplat.data.room import RoomSpec, load_room
+
+IMAGES = ALL_IMAGES / "refine"
 
 
 def run_one(estimator: str, args: argparse.Namespace) -> dict:
@@ -41,17 +43,14 @@ def run_one(estimator: str, args: argparse.Namespace) -> dict:
                  f"data.room.frames={args.frames}", f"optim.decay_every={args.steps // 3}",
                  f"filter.start={args.steps // 5}", f"filter.every={args.steps // 3}",
                  f"log.checkpoint={args.steps}", *args.set]
-    cmd = [sys.executable, str(ROOT / "train.py"), "--config", str(ROOT / "configs" / "refine_room.yaml"),
-           "--run", str(run_dir), "--device", "cpu", *overrides]
-    subprocess.run(cmd, check=True, cwd=ROOT)
+    run_config(ROOT / "configs" / "refine_room.yaml", run_dir, ["--device", "cpu", *overrides])
     init = json.loads((run_dir / "metrics_initial.json").read_text())
     final = json.loads((run_dir / "metrics_final.json").read_text())
     return {"run_dir": str(run_dir.relative_to(ROOT)), "initial": init, "final": final, "overrides": overrides}
 
 
 def save_images(run_dir: Path, prefix: str, tag: str, frames: list[int]) -> None:
-    from nsplat.data.room import RoomSpec, load_room  # noqa: F401 (same cache as the task)
-    cfg = __import__("yaml").safe_load((run_dir / "config.yaml").read_text())
+    cfg = read_yaml(run_dir / "config.yaml")
     spec = RoomSpec(**cfg["data"]["room"])
     room = load_room(spec, ROOT / cfg["data"]["cache_dir"])
     before = torch.load(run_dir / "renders_initial.pt")
@@ -76,7 +75,6 @@ def main() -> None:
     p.add_argument("--name", default="refine_room",
                    help="study name: results in benchmarks/results/<name>.json, runs in runs/bench-<name>-<estimator>")
     args = p.parse_args()
-    path = RESULTS / f"{args.name}.json"
     prefix = "room" if args.name == "refine_room" else args.name
     key = {k: v for k, v in vars(args).items() if k not in ("estimators", "name")}
     out = {"args": key, "runs": {}}
@@ -84,13 +82,11 @@ def main() -> None:
     for est in args.estimators:
         results[est] = run_one(est, args)
         save_images(ROOT / results[est]["run_dir"], prefix, est, [0, args.frames // 2])
-    if path.is_file():  # re-read now: another invocation may have written meanwhile
-        old = json.loads(path.read_text())
-        if old.get("args") == key:
-            out["runs"].update(old.get("runs", {}))
+    old = read_result(args.name)  # re-read now: another invocation may have written meanwhile
+    if old is not None and old.get("args") == key:
+        out["runs"].update(old.get("runs", {}))
     out["runs"].update(results)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1))
+    write_result(args.name, out)
     hdr = f"{'estimator':>9} | {'rot° before':>11} {'after':>7} {'÷':>5} | {'trans before':>12} {'after':>7} {'÷':>5} | " \
           f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}"
     print(hdr)

@@ -1,10 +1,10 @@
 """Sampler benchmark on real geometry (issue 18): work per pixel and CPU time of the per-pixel SPS sampler.
 
-    python benchmarks/real_scenes.py         # once: generates and caches the scenes (a few minutes, one core)
-    python benchmarks/sampler_real.py        # the table (a few minutes, one core)
-    python benchmarks/sampler_real.py --quick --scenes lego_hull --configs 40:0.01
+    python -m benchmarks.real_scenes         # once: generates and caches the scenes (a few minutes, one core)
+    python -m benchmarks.sampler_real        # the table (a few minutes, one core)
+    python -m benchmarks.sampler_real --quick --scenes lego_hull --configs 40:0.01
 
-Scenes (benchmarks/real_scenes.py): ``default_fit`` (neural task, stage-1 surfels, 64²), ``lego_hull`` and
+Scenes (:mod:`benchmarks.real_scenes`): ``default_fit`` (neural task, stage-1 surfels, 64²), ``lego_hull`` and
 ``lego_fit`` (lego visual-hull surfels, and after a short stage-1 fit, 200²), ``bunny`` (reconstruction
 task's bunny, 256²) and ``random_20k`` (benchmarks/op_cpu.py's sphere scene, N = 20k, 128²). One camera each.
 
@@ -26,7 +26,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -34,25 +33,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-CACHE = ROOT / "data_cache" / "sampler_scenes"
-RESULTS = ROOT / "benchmarks" / "results"
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import RESULTS, machine
+from benchmarks.op_cpu import scene as sphere_scene
+from benchmarks.real_scenes import CACHE
 SCENES = ("default_fit", "lego_hull", "lego_fit", "lego20k_hull", "bunny", "random_20k")
 NEAR, FAR, LOWPASS = 0.01, 1e10, 1.0
 
 
 def load_scene(name: str) -> dict:
     if name == "random_20k":
-        from benchmarks.op_cpu import scene
-
-        params, V, K = scene(20000, 128)
+        params, V, K = sphere_scene(20000, 128)
         means, normals, scales, opac, _ = params
         return dict(means=means, normals=normals, scales=scales, opacities=opac, viewmat=V[0], K=K[0],
                     width=128, height=128)
     path = CACHE / f"{name}.pt"
     if not path.is_file():
-        raise SystemExit(f"{path} missing: run python benchmarks/real_scenes.py first")
+        raise SystemExit(f"{path} missing: run python -m benchmarks.real_scenes first")
     return torch.load(path)
 
 
@@ -201,8 +198,8 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.processor() or platform.machine(), "threads": 1, "cpus": os.cpu_count(),
-            "command": "python benchmarks/sampler_real.py " + " ".join(sys.argv[1:]), "torch": torch.__version__}
+    meta = {"machine": machine(), "threads": 1,
+            "command": "python -m benchmarks.sampler_real " + " ".join(sys.argv[1:]), "torch": torch.__version__}
     Path(args.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(table(rows))
 

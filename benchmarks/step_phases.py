@@ -1,45 +1,42 @@
-"""Where the time of one stage-1 step goes (issue 28, session 8).
+"""Where the time of one stage-1 step goes.
 
-Loads fitted surfels (default: the annealed 72-epoch lego stage 1) and runs the stage-1 step of the config
+Loads fitted surfels (default: ``runs/lego_splat_only/geometry.ply``, configs/lego_splat_only.yaml's stage 1) and runs the stage-1 step of the config
 phase by phase on the training views, one view per step as the fitter does: view-dependent colour
 (:func:`nsplat.sh.view_colour`), projection, the sampler, compositing, the L1 loss, the backward of all of
 them, and the Adam step. Reports the mean wall milliseconds of each phase over ``--steps`` steps (after 3
 warm-up steps) and its share.
 
-    python benchmarks/step_phases.py runs/ttq/lego/point-72ep-norepo-cap05-a12-s0/geometry.ply
+    python train.py --config configs/lego_splat_only.yaml --run runs/lego_splat_only   # the surfels (30 min)
+    python -m benchmarks.step_phases runs/lego_splat_only/geometry.ply
 
 Prints a table and writes ``benchmarks/results/step_phases.json``.
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+from benchmarks.common import REPO as ROOT
+from benchmarks.common import write_result
+from nsplat.config import load_config, read_yaml
+from nsplat.ops import composite_sample, project, sample
+from nsplat.ops.validation import inclusion_for
+from nsplat.scene import SurfelScene
+from nsplat.sh import view_colour
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.geometry import geometry_scene_config
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("ply", nargs="?", default=str(ROOT / "runs/ttq/lego/point-72ep-norepo-cap05-a12-s0/geometry.ply"))
+    ap.add_argument("ply", nargs="?", default=str(ROOT / "runs" / "lego_splat_only" / "geometry.ply"))
     ap.add_argument("--config", default=str(ROOT / "configs" / "lego.yaml"))
     ap.add_argument("--steps", type=int, default=20)
     args = ap.parse_args()
-
-    from nsplat.config import load_config, read_yaml
-    from nsplat.ops import composite_sample, project, sample
-    from nsplat.ops.validation import inclusion_for
-    from nsplat.scene import SurfelScene
-    from nsplat.sh import view_colour
-    from nsplat.tasks.neural import load_views
-    from nsplat.tasks.neural_config import Config
-    from nsplat.tasks.neural_init import geometry_scene_config
-
     cfg = load_config(Config, read_yaml(args.config), [])
     if cfg.geometry.optim.shading != "sh":
         raise SystemExit(f"{args.config}: this benchmark times the SH stage 1 (geometry.optim.shading: sh)")
@@ -82,11 +79,8 @@ def main() -> None:
     for row in rows:
         print(f"| {row['phase']} | {row['ms']:.1f} | {100 * row['share']:.0f} % |")
     print(f"| step | {1000 * step / args.steps:.1f} | |")
-    res = ROOT / "benchmarks" / "results" / "step_phases.json"
-    res.write_text(json.dumps({"ply": args.ply, "config": args.config, "points": scene.num_points, "steps": args.steps,
-                               "threads": torch.get_num_threads(), "load": os.getloadavg(), "rows": rows,
-                               "step_ms": 1000 * step / args.steps}, indent=1))
-    print(f"written {res}")
+    write_result("step_phases", {"ply": args.ply, "config": args.config, "points": scene.num_points,
+                                 "steps": args.steps, "rows": rows, "step_ms": 1000 * step / args.steps})
 
 
 if __name__ == "__main__":

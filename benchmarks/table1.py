@@ -16,8 +16,8 @@ Prints a Markdown table and writes ``benchmarks/results/table1-<setting>.json``;
 held-out render (GT | reconstruction, upscaled with nearest neighbour) and the point-cloud plot of each
 run to ``docs/images/reconstruct/``.
 
-    python benchmarks/table1.py --jobs 2
-    python benchmarks/table1.py --setting paper --jobs 16 --device cuda
+    python -m benchmarks.table1 --jobs 2
+    python -m benchmarks.table1 --setting paper --jobs 16 --device cuda
 """
 from __future__ import annotations
 
@@ -34,9 +34,14 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results"
-IMAGES = REPO / "docs" / "images" / "reconstruct"
+from benchmarks.common import IMAGES as ALL_IMAGES
+from benchmarks.common import REPO, write_result
+from nsplat.config import load_config, read_yaml
+from nsplat.data.dss import cached_gt_images
+from nsplat.data.pointclouds import load_dss_shape
+from nsplat.tasks.reconstruct import Config
+
+IMAGES = ALL_IMAGES / "reconstruct"
 SHAPES = ("bunny", "teapot", "yoga1", "yoga6")
 METHODS = {
     "ht": ["render.renderer=splat", "render.estimator=ht"],
@@ -60,13 +65,13 @@ def learning_rate(lr: float) -> list[str]:
 #: Log cadences are in steps: ``validate`` = shape metrics every 5 or 10 epochs of ``views / batch`` steps.
 SETTINGS = {
     "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
-            *learning_rate(0.03), "optim.reposition_every=5", "log.validate=20", "log.checkpoint=4"],
+            *learning_rate(0.03), "optim.reposition.every=5", "log.validate=20", "log.checkpoint=4"],
     # the cpu budget with 5x the steps and twice the views: how the comparison moves with optimisation time
     "cpu-long": ["data.width=32", "data.height=32", "data.views=48", "init.count=2000", "optim.epochs=50",
-                 "optim.batch=6", *learning_rate(0.03), "optim.reposition_every=5", "log.validate=80",
+                 "optim.batch=6", *learning_rate(0.03), "optim.reposition.every=5", "log.validate=80",
                  "log.checkpoint=8"],
     "paper": ["data.width=256", "data.height=256", "data.views=124", "optim.epochs=300", "optim.batch=12",
-              *learning_rate(0.01), "optim.reposition_every=1", "log.validate=110", "log.checkpoint=11"],
+              *learning_rate(0.01), "optim.reposition.every=1", "log.validate=110", "log.checkpoint=11"],
 }
 
 
@@ -112,11 +117,6 @@ def run_one(name: str, shape: str, overrides: list[str], table: str, device: str
 
 def prepare_gt(jobs: list[tuple[str, str, list[str]]], args: argparse.Namespace) -> None:
     """Render the GT images of every distinct data setting once (sequentially) before the parallel runs."""
-    sys.path.insert(0, str(REPO))
-    from nsplat.config import load_config, read_yaml
-    from nsplat.data.pointclouds import load_dss_shape
-    from nsplat.data.dss import cached_gt_images
-    from nsplat.tasks.reconstruct import Config
 
     seen = set()
     for _, shape, ov in jobs:
@@ -157,12 +157,10 @@ def common_args(description: str) -> argparse.Namespace:
 
 
 def write_json(name: str, args: argparse.Namespace, rows: list[dict], extra: dict | None = None) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"{name}-{args.setting}.json"
+    """``benchmarks/results/<name>-<setting>.json`` of a reconstruction table (:func:`benchmarks.common.write_result`)."""
     payload = {"setting": args.setting, "overrides": SETTINGS[args.setting] + list(args.override),
                "seed": args.seed, "rows": rows, **(extra or {})}
-    path.write_text(json.dumps(payload, indent=2))
-    return path
+    return write_result(f"{name}-{args.setting}", payload)
 
 
 def fmt(x: float) -> str:
@@ -200,8 +198,7 @@ def main() -> None:
                          f"{r['chamfer_sq']:.2f} |")
     table = "\n".join(lines)
     print(table)
-    path = write_json("table1", args, rows, {"ratios_vs_ht": ratios, "paper": PAPER_TABLE1, "markdown": table})
-    print(f"\nwrote {path}")
+    write_json("table1", args, rows, {"ratios_vs_ht": ratios, "paper": PAPER_TABLE1, "markdown": table})
 
 
 if __name__ == "__main__":

@@ -1,15 +1,15 @@
 """Table 2: influence of the per-pixel sample count m (1, 3, 5, 20, 40) on bunny reconstruction (estimator ht).
 
-Same harness and settings as ``benchmarks/table1.py`` (``--setting cpu|paper``). Prints a Markdown
+Same harness and settings as :mod:`benchmarks.table1` (``--setting cpu|paper``). Prints a Markdown
 table beside the paper's numbers, writes ``benchmarks/results/table2-<setting>.json`` and the plot
 ``docs/images/reconstruct/ablation_samples-<setting>.png``.
 
-    python benchmarks/table2.py --jobs 2
+    python -m benchmarks.table2 --jobs 2
 """
 from __future__ import annotations
 
-from ablation import report
-from table1 import REPO, common_args, run_all
+from benchmarks.ablation import report
+from benchmarks.table1 import REPO, common_args, run_all
 
 SAMPLES = (1, 3, 5, 20, 40)
 #: The paper's Table 2 (HD, CD as printed).

@@ -19,8 +19,8 @@ its standard error) and the gradient variance, in additive mode with a linear lo
 the deterministic two-pass backward against the single-pass atomic-scatter one. Results go to
 ``benchmarks/results/tradeoff.json``, plots to ``docs/images/tradeoffs/``.
 
-    OMP_NUM_THREADS=1 python benchmarks/tradeoff.py                 # the full run (~15 min, 2 cores)
-    OMP_NUM_THREADS=1 python benchmarks/tradeoff.py --tiny          # a quick check of the script
+    OMP_NUM_THREADS=1 python -m benchmarks.tradeoff                 # the full run (~15 min, 2 cores)
+    OMP_NUM_THREADS=1 python -m benchmarks.tradeoff --tiny          # a quick check of the script
 """
 from __future__ import annotations
 
@@ -30,22 +30,19 @@ import math
 import os
 import platform
 import re
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from nsplat.cameras import intrinsics_from_fov, look_at  # noqa: E402
-from nsplat.data.pointclouds import load_dss_shape  # noqa: E402
-from nsplat.ops import project, splat, splat_dense  # noqa: E402
-from nsplat.ops.reference import pixel_centres, splat_alpha  # noqa: E402
-from nsplat.ops.rng import uniforms  # noqa: E402
-from nsplat.scene import knn_spacing  # noqa: E402
+from benchmarks.common import IMAGES, RESULTS, machine
+from nsplat.cameras import intrinsics_from_fov, look_at
+from nsplat.data.pointclouds import load_dss_shape
+from nsplat.ops import project, splat, splat_dense
+from nsplat.ops.reference import pixel_centres
+from nsplat.ops.rng import uniforms
+from nsplat.scene import knn_spacing
 
 SAMPLES = (1, 2, 4, 8, 16, 32, 64)
 EPS = (0.1, 0.01, 0.001)
@@ -456,8 +453,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--cache", default="/tmp/nsplat-bench-cache", help="folder caching the dense reference "
                    "and SPS oracle between runs ('' disables)")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "tradeoff.json")
-    p.add_argument("--plots", type=Path, default=ROOT / "docs" / "images" / "tradeoffs")
+    p.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")
+    p.add_argument("--plots", type=Path, default=IMAGES / "tradeoffs")
     args = p.parse_args(argv)
     samples, eps_list, hermite, grad_m = SAMPLES, EPS, HERMITE, (1, 4, 16, 64)
     if args.tiny:
@@ -538,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
                    torch=torch.__version__, machine=platform.machine(), cpus=os.cpu_count(),
                    dtype="float32 (sweeps), float64 (gradients)",
                    loss="sum of image × fixed N(0,1) weights (linear)"),
-        samples_eps=grid, hermite=herm, backward_modes=backward_modes, gradients=grads)
+        samples_eps=grid, hermite=herm, backward_modes=backward_modes, gradients=grads, machine=machine())
     result["setup"]["total_wall_s"] = time.perf_counter() - t_start
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))

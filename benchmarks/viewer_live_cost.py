@@ -1,6 +1,6 @@
 """Cost of the live training view (``viewer=true``) on a tiny neural run. Not run in CI.
 
-    python benchmarks/viewer_live_cost.py [--steps 40] [--repeats 1]
+    python -m benchmarks.viewer_live_cost [--steps 40] [--repeats 1]
 
 Trains the same tiny config (procedural scene at 32 px, 8 training views, 2 stage-1 epochs, ``--steps``
 stage-2 steps) three ways, each as its own ``train.py`` process: without the viewer; with
@@ -18,22 +18,21 @@ import os
 import re
 import resource
 import shutil
+import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from nsplat.viewer.server import free_port  # noqa: E402
+from benchmarks.common import REPO, write_result
+from nsplat.viewer.server import free_port
 
 TINY = """task: neural
 seed: 0
 data:
   procedural: {{seed: 1, resolution: 32, views: [8, 2, 2], objects: 2, cache_dir: {cache}}}
-geometry: {{grid: 32, optim: {{epochs: 2, batch: 4, reposition: false}}}}
+geometry: {{grid: 32, optim: {{epochs: 2, batch: 4, reposition: {{enabled: false}}}}}}
 render: {{samples: 16}}
 neural: {{steps: {steps}, batch: 2, features: 4, unet: {{depth: 2, width: 8}}, gan: {{width: 8, layers: 2}}}}
 log: {{every: 5, images: 0, checkpoint: 1000, validate: 0, progress: false}}
@@ -42,8 +41,6 @@ eval: {{images: false}}
 
 
 def _wait_port(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> bool:
-    import socket
-
     t_end = time.time() + timeout
     while time.time() < t_end and proc.poll() is None:
         with socket.socket() as s:
@@ -92,18 +89,16 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="nsplat-live-cost-"))
     cfg = tmp / "tiny.yaml"
     cfg.write_text(TINY.format(cache=tmp / "cache", steps=args.steps))
-    cases = {"no viewer": ([], False), "viewer=true, no browser": (["viewer=true"], False),
+    small = ["viewer.resolution=192", "viewer.render.samples=8"]  # a cheap live view
+    cases = {"no viewer": ([], False), "viewer=true, no browser": (["viewer=true", *small], False),
              "viewer=true, headless Chromium connected, refresh_every=1": (
-                 ["viewer=true", "viewer.refresh_every=1"], True)}
+                 ["viewer=true", "viewer.refresh_every=1", *small], True)}
     one(cfg, tmp / "warm", [], False)  # generates the scene; warms the file cache
     results = {name: [one(cfg, tmp / "run", extra, browser) for _ in range(args.repeats)]
                for name, (extra, browser) in cases.items()}
     report = {"steps": args.steps, "note": "2-core machine shared with other jobs; wall times are noisy",
               "cases": results}
-    out = REPO / "benchmarks" / "results" / "viewer_live_cost.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1))
-    print(json.dumps(report, indent=1))
+    write_result("viewer_live_cost", report, json.dumps(report, indent=1))
     shutil.rmtree(tmp, ignore_errors=True)
     return 0
 

@@ -1,7 +1,7 @@
 """Screenshot of the web viewer with headless Chromium (docs/images/viewer/*.png). Not run in CI.
 
     apt-get install -y chromium          # Debian's package
-    python benchmarks/viewer_screenshot.py [--run DIR] [--out docs/images/viewer/viewer.png]
+    python -m benchmarks.viewer_screenshot [--run DIR] [--out docs/images/viewer/viewer.png]
 
 Without ``--run`` it first trains a small run of the main job (``python train.py`` with a short
 budget: 4 stage-1 epochs, 60 stage-2 steps; a few minutes on 2 cores). It then serves the run on a
@@ -13,22 +13,20 @@ from __future__ import annotations
 
 import argparse
 import base64
+import dataclasses
 import json
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from nsplat.cli import main as train_main  # noqa: E402
-from nsplat.viewer.model import RenderSettings  # noqa: E402
-from nsplat.viewer.runs import load_run  # noqa: E402
-from nsplat.viewer.server import ViewerServer, free_port  # noqa: E402
+from benchmarks.common import IMAGES, REPO
+from nsplat.cli import main as train_main
+from nsplat.viewer.config import ViewerConfig
+from nsplat.viewer.runs import load_run
+from nsplat.viewer.server import ViewerServer, free_port
 
 TRAIN = ["geometry.optim.epochs=4", "neural.steps=60", "log.validate=0", "log.progress=false"]
 
@@ -74,8 +72,8 @@ def screenshot(run: Path, out: Path, width: int = 1200, height: int = 760, mode:
     if chromium is None:
         raise SystemExit("chromium not found (apt-get install -y chromium)")
     model = load_run(run)
-    server = ViewerServer(model, "127.0.0.1", free_port(), RenderSettings(samples=samples, resolution=resolution,
-                                                                          mode=mode))
+    server = ViewerServer(model, ViewerConfig(port=free_port(), resolution=resolution, render={"samples": samples}))
+    server.settings = dataclasses.replace(server.settings, mode=mode)
     server.progressive = False  # the screenshot waits for the full render anyway
     debug_port = free_port()
     profile = tempfile.mkdtemp(prefix="nsplat-chromium-")
@@ -110,7 +108,7 @@ def screenshot(run: Path, out: Path, width: int = 1200, height: int = 760, mode:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", type=Path, default=None, help="run folder to show (default: train a small one)")
-    p.add_argument("--out", type=Path, default=REPO / "docs" / "images" / "viewer" / "viewer.png")
+    p.add_argument("--out", type=Path, default=IMAGES / "viewer" / "viewer.png")
     p.add_argument("--mode", default="rgb", help="rgb, features, alpha or depth")
     args = p.parse_args()
     run = args.run
