@@ -9,15 +9,16 @@ Public API:
     Splatter            nn.Module holding the op's settings
     SplatSettings       the op's settings as one value (Splatter's, and the render gateway's)
     sample(...)         per-pixel SPS sample (indices, inclusion probabilities, Λ̂)
+    sampler_isa()       the CPU sampler's instruction set (NSPLAT_CPU_SIMD overrides; same bits on all)
     composite_sample(...) compositor of a given per-pixel sample (differentiable, estimator backward)
     diagnostics         Monte-Carlo bias/variance of the estimators against the dense oracle
     project(...)        differentiable EWA projection of surfels
 """
-from .functional import composite_sample, sample, splat
+from .functional import composite_sample, sample, sampler_isa, splat
 from .module import Splatter
 from .output import SplatOutput
 from .settings import SplatSettings
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
 
-__all__ = ["Splatter", "SplatSettings", "splat", "sample", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]
+__all__ = ["Splatter", "SplatSettings", "splat", "sample", "sampler_isa", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]

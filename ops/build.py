@@ -20,6 +20,12 @@ import torch
 log = logging.getLogger("nsplat.ops")
 CSRC = Path(__file__).resolve().parent / "csrc"
 _MODULES: dict[str, ModuleType] = {}
+#: The CPU backend's sources (csrc/cpu). lanes_<isa>.cpp compile the sampler's tile search for each instruction
+#: set (by `#pragma GCC target`, not by flags), lanes_dispatch.cpp picks one at run time.
+CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "lanes_dispatch.cpp", "lanes_base.cpp",
+               "lanes_avx2.cpp", "lanes_avx512.cpp")
+#: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4).
+CPU_CFLAGS = ("-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off")
 #: A build lock older than this is taken to be left by a killed build (a real build takes ~1-3 minutes).
 STALE_LOCK_S = 900
 
@@ -49,9 +55,8 @@ def _load(kind: str) -> ModuleType:
     tag = f"-DNSPLAT_SOURCE_HASH={source_hash()}"
 
     if kind == "cpu":
-        sources = [str(CSRC / "cpu" / "bindings.cpp"), str(CSRC / "cpu" / "splat_cpu.cpp"),
-                   str(CSRC / "cpu" / "scatter_cpu.cpp")]
-        flags = dict(extra_cflags=["-O3", "-fopenmp", "-std=c++17", tag], extra_ldflags=["-fopenmp"])
+        sources = [str(CSRC / "cpu" / f) for f in CPU_SOURCES]
+        flags = dict(extra_cflags=[*CPU_CFLAGS, tag], extra_ldflags=["-fopenmp"])
     else:
         sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]
         flags = dict(extra_cflags=["-O3", "-std=c++17", tag],

@@ -17,6 +17,7 @@ import dataclasses
 import torch
 
 from .library import _entries_by_point, _entries_by_point_sorted  # noqa: F401 - re-exported (tests, benchmarks)
+from .build import backend
 from .library import composite_forward_op, sample_op
 from .output import SplatOutput
 from .projection import Projected, project
@@ -44,6 +45,13 @@ def _projected_float32(proj: Projected) -> Projected:
     if not isinstance(proj, Projected):
         return proj
     return Projected(**{f.name: _to_float32(getattr(proj, f.name)) for f in dataclasses.fields(proj)})
+
+
+def sampler_isa() -> str:
+    """The instruction set of the CPU sampler's tile search in this process: the widest this CPU runs ("avx512",
+    "avx2" or "base"), or the one the environment variable ``NSPLAT_CPU_SIMD`` names (read at every call; all of
+    them give the same bits, docs/op.md §4). Raises ``ValueError`` for a name the build lacks or the CPU cannot run."""
+    return backend(torch.device("cpu")).sampler_isa("auto")
 
 
 def _seed_tensor(seed: int | torch.Tensor) -> torch.Tensor:

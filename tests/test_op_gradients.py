@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from scipy.stats import norm
 
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
 from nsplat.ops.reference import pips_probabilities, pixel_centres, pixel_rays, size_measures, splat_alpha, \
@@ -122,8 +123,12 @@ def test_pips_gradient_mean_is_the_exact_sps_expectation_in_additive_mode():
     gradient alone in tests/test_op_unbiased.py.)
 
     The loss weights are zero on the few pixels that have a certainty unit (πps = 1): there the op's π
-    adapt to whether the unit was drawn, so a fixed-π expectation would not be an exact oracle."""
-    W, H, m, R = 10, 8, 2, 200
+    adapt to whether the unit was drawn, so a fixed-π expectation would not be an exact oracle.
+
+    Every gradient element is compared, so the bound is the two-sided normal quantile of a family-wise error
+    rate of 1e-3 over all of them (Bonferroni; ≈ 4.7 SE for the ~300 elements here), with R = 1000 seeds so
+    that the heavy-tailed HT terms average to a near-normal mean."""
+    W, H, m, R = 10, 8, 2, 1000
     sc = make_scene(16, 7, C=3, dtype=torch.float64, spread=0.2, scale=(0.1, 0.2))
     V, K = make_cameras(2, W, H, dtype=torch.float64, focal=10.0)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
@@ -150,15 +155,16 @@ def test_pips_gradient_mean_is_the_exact_sps_expectation_in_additive_mode():
     ratio = torch.stack([sps_expectation_weights(lam, m) for lam in lams])
     pe = _params(sc, V, bg)
     expected = torch.autograd.grad(_expected_additive_loss(pe, K, W, H, ratio, wi, wa, wd), pe)
+    z = float(norm.isf(1e-3 / (2 * sum(t.numel() for t in dense))))
     for i, name in enumerate(NAMES):
         stack = torch.stack([r[i] for r in runs])
         mean, se = stack.mean(0), stack.std(0) / R ** 0.5
         gap = (expected[i] - dense[i]).abs()
         roundoff = 1e-10 * float(dense[i].abs().max())
-        ok = (mean - dense[i]).abs() <= 4 * se + gap + roundoff
+        ok = (mean - dense[i]).abs() <= z * se + gap + roundoff
         assert bool(ok.all()), (name, float(((mean - dense[i]).abs() - gap).max()), float(se.max()))
         # and the estimator's mean is the exact SPS expectation (no gap allowance)
-        assert bool(((mean - expected[i]).abs() <= 4 * se + roundoff).all()), name
+        assert bool(((mean - expected[i]).abs() <= z * se + roundoff).all()), name
 
 
 @pytest.mark.parametrize("shape,N", [((1, 4, 5, 3), 7), ((3, 8, 9, 5), 50), ((2, 1, 1, 4), 1), ((2, 3, 3, 2), 0)])

@@ -3,6 +3,7 @@ the floor, and calibration of inclusion frequencies against exact SPS and πps p
 from __future__ import annotations
 
 import math
+import platform
 
 import numpy as np
 import pytest
@@ -238,3 +239,47 @@ int main() {
     worst, mismatched = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split()
     assert float(worst) <= 1.0, f"fast_exp: {worst} ulp"
     assert int(mismatched) == 0
+
+
+def _isas_this_cpu_runs() -> list[str]:
+    from nsplat.ops.build import backend
+
+    mod = backend(torch.device("cpu"))
+    runs = []
+    for name in mod.sampler_isas():
+        try:
+            runs.append(mod.sampler_isa(name))
+        except ValueError:  # this CPU lacks the instructions
+            pass
+    return runs
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("m,eps,inclusion,stratified", [(8, 0.01, "threshold", False), (40, 0.01, "pips", False),
+                                                        (1, 0.1, "threshold", True), (300, 1e-4, "threshold", False)])
+def test_every_instruction_set_samples_the_same_bits(monkeypatch, dtype, m, eps, inclusion, stratified):
+    """The CPU sampler's tile search is compiled for each instruction set (base, AVX2, AVX-512) and picked at run
+    time; NSPLAT_CPU_SIMD forces one. Every set this CPU runs gives bitwise identical indices, π, Λ̂ and work
+    (independent IEEE lanes, no FMA contraction), on an image whose size is not a multiple of the 4x4 tile."""
+    isas = _isas_this_cpu_runs()
+    if platform.machine() in ("x86_64", "AMD64"):
+        assert "base" in isas and "avx2" in isas, isas  # every x86-64 CPU the project supports has AVX2
+    sc = make_scene(600, 13, dtype=dtype, scale=(0.01, 0.08))
+    V, K = make_cameras(2, 30, 21, dtype=dtype)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    outs = {}
+    for isa in isas:
+        monkeypatch.setenv("NSPLAT_CPU_SIMD", isa)
+        outs[isa] = sample(proj, K, 30, 21, samples=m, eps=eps, seed=3, inclusion=inclusion, stratified=stratified)
+    ref = outs["base"]
+    for isa, out in outs.items():
+        for name, a, b in zip(("indices", "probs", "total", "work"), out, ref):
+            assert torch.equal(a, b), (isa, name)
+    assert int(ref[3].max()) < 600 or m == 300, "the case is meant to exercise pruning"
+
+
+def test_an_instruction_set_this_build_lacks_is_refused(monkeypatch):
+    monkeypatch.setenv("NSPLAT_CPU_SIMD", "avx1024")
+    _, _, K, proj = _setup(20, seed=1, B=1)
+    with pytest.raises(ValueError, match="NSPLAT_CPU_SIMD"):
+        sample(proj, K, W, H, samples=4)

@@ -6,6 +6,7 @@
 #pragma once
 #include <torch/extension.h>
 
+#include <string>
 #include <vector>
 
 namespace nsplat {
@@ -35,6 +36,11 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
                                                   at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
                                                   at::Tensor g_depth, int64_t width, int64_t height,
                                                   int64_t estimator);
+
+// CPU only (cpu/splat_cpu.cpp): the sampler's instruction set for `name` ("auto" or one of sampler_isas(); the
+// environment variable NSPLAT_CPU_SIMD overrides "auto"), and the instruction sets of this build.
+std::string sampler_isa(std::string name);
+std::vector<std::string> sampler_isas();
 
 // CPU only (cpu/splat_cpu.cpp): filled slots grouped by point, stable counting sort: {entries [E], seg [N+1]}.
 std::vector<at::Tensor> entries_by_point(at::Tensor indices, int64_t num_points);

@@ -25,10 +25,17 @@ NS_HD double hermite_rel_error(double rho, int p) {
   return r + (1.0 + r) * r;
 }
 
-// Smallest order meeting `tol`, or 0 for "no expansion".
+// Smallest order meeting `tol`, or 0 for "no expansion" (hermite_rel_error for p = 1, 2, ..., its product term
+// carried from one order to the next: the same operations, so the same bits).
 NS_HD int hermite_order(double rho, double tol, int pmax) {
-  for (int p = 1; p <= pmax; ++p)
-    if (hermite_rel_error(rho, p) <= tol) return p;
+  if (rho >= sqrt(static_cast<double>(pmax + 1))) return 0;
+  double term = 1.0;  // rho^p / sqrt(p!)
+  for (int p = 1; p <= pmax; ++p) {
+    term *= rho / sqrt(static_cast<double>(p));
+    if (rho >= sqrt(static_cast<double>(p + 1))) continue;
+    const double r = kCramer * term / (1.0 - rho / sqrt(static_cast<double>(p + 1)));
+    if (r + (1.0 + r) * r <= tol) return p;
+  }
   return 0;
 }
 

@@ -10,6 +10,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CPU)");
   m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CPU)");
   m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CPU)");
+  m.def("sampler_isa", &nsplat::sampler_isa, "The sampler's instruction set for a name ('auto' or one of sampler_isas())");
+  m.def("sampler_isas", &nsplat::sampler_isas, "The sampler's instruction sets in this build");
   m.def("entries_by_point", &nsplat::entries_by_point, "Filled slots grouped by point, stable counting sort (CPU)");
   m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
         "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");

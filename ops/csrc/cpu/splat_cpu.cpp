@@ -2,6 +2,9 @@
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <functional>
+#include <memory>
+#include <string>
 #include <vector>
 
 #ifdef _OPENMP
@@ -13,6 +16,7 @@
 #include "../core/sps.h"
 #include "../core/tile.h"
 #include "../core/tree_build.h"
+#include "lanes_api.h"
 
 namespace nsplat {
 namespace {
@@ -25,7 +29,7 @@ struct CpuTree {
   std::vector<NodeAgg> agg;
   std::vector<int> herm_p, parent_int, parent_leaf, flags, id;
   std::vector<int64_t> herm_off;
-  std::vector<double> herm_err, herm_coef, mu, con, logA, amp, sig2;
+  std::vector<double> herm_err, herm_coef, mu, con, logA, amp, sig2, nrm, off, zc;
   int64_t n = 0;
 
   TreeView view() const {
@@ -46,8 +50,27 @@ struct CpuTree {
   }
 };
 
+// Sorts the unique 64-bit tree keys (morton_key: code in the high word, original index in the low word; `keys` in
+// increasing index order) ascending: a stable LSD radix sort of the high words (11, 11 and 10 bits), which leaves
+// equal codes in index order, i.e. the order of the whole keys.
+void sort_keys(std::vector<uint64_t>& keys) {
+  std::vector<uint64_t> tmp(keys.size());
+  const int shifts[3] = {32, 43, 54};
+  for (int pass = 0; pass < 3; ++pass) {
+    const int shift = shifts[pass];
+    size_t count[2049] = {0};
+    for (uint64_t k : keys) ++count[((k >> shift) & 2047) + 1];
+    for (int b = 0; b < 2048; ++b) count[b + 1] += count[b];
+    for (uint64_t k : keys) tmp[count[(k >> shift) & 2047]++] = k;
+    keys.swap(tmp);
+  }
+}
+
+// Builds a camera's tree over its valid points (amp > 0); the sorted copies of nrm / off / zc (per-pixel depth)
+// are taken only when `nrm` is not null.
 template <typename S>
-void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* sig2, int64_t N, int order, double tol) {
+void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* sig2, const S* nrm, const S* off,
+                const S* zc, int64_t N, int order, double tol) {
   std::vector<int64_t> valid;
   valid.reserve(N);
   double lox = INFINITY, loy = INFINITY, hix = -INFINITY, hiy = -INFINITY;
@@ -71,13 +94,18 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
     int64_t k = valid[i];
     keys[i] = morton_key(double(mu[2 * k]), double(mu[2 * k + 1]), double(sig2[k]), lox, loy, inv_ext, k);
   }
-  std::sort(keys.begin(), keys.end());
+  sort_keys(keys);
   T.id.resize(n);
   T.mu.resize(2 * n);
   T.con.resize(3 * n);
   T.logA.resize(n);
   T.amp.resize(n);
   T.sig2.resize(n);
+  if (nrm) {
+    T.nrm.resize(3 * n);
+    T.off.resize(n);
+    T.zc.resize(n);
+  }
 #pragma omp parallel for num_threads(nt) schedule(static)
   for (int64_t s = 0; s < n; ++s) {
     int64_t k = static_cast<int64_t>(keys[s] & 0xFFFFFFFFull);
@@ -88,6 +116,11 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
     T.amp[s] = double(amp[k]);
     T.logA[s] = std::log(T.amp[s]);
     T.sig2[s] = double(sig2[k]);
+    if (nrm) {
+      for (int c = 0; c < 3; ++c) T.nrm[3 * s + c] = double(nrm[3 * k + c]);
+      T.off[s] = double(off[k]);
+      T.zc[s] = double(zc[k]);
+    }
   }
   if (n == 1) return;
   const int64_t ni = n - 1;
@@ -142,18 +175,24 @@ void check_cpu(const std::vector<at::Tensor>& ts) {
 
 }  // namespace
 
+namespace {
+
+}  // namespace
+
 template <typename S>
 void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& sig2,
                  const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, int64_t width,
-                 int64_t height, int64_t m, double log_eps, int64_t seed, int order, double tol, int inclusion,
-                 bool stratified, at::Tensor& indices,
-                 at::Tensor& probs, at::Tensor& total, at::Tensor& work, const SamplerCounters* counters = nullptr) {
+                 int64_t height, int64_t m, double eps, int64_t seed, int order, double tol, int inclusion,
+                 bool stratified, LaneSearchFn search, at::Tensor& indices, at::Tensor& probs, at::Tensor& total,
+                 at::Tensor& work) {
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height;
   const int nt = num_threads();
+  const double log_eps = std::log(eps);
   for (int64_t b = 0; b < B; ++b) {
     CpuTree tree;
     build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
-                  sig2.data_ptr<S>() + b * N, N, order, tol);
+                  sig2.data_ptr<S>() + b * N, nrm.data_ptr<S>() + b * N * 3, off.data_ptr<S>() + b * N,
+                  zc.data_ptr<S>() + b * N, N, order, tol);
     TreeView tv = tree.view();
     std::vector<ItemMetric> metric(std::max<int64_t>(tv.n - 1, 1));
 #pragma omp parallel for num_threads(nt) schedule(static)
@@ -162,52 +201,65 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
       if (nd.last - nd.first + 1 <= kGroupSize) metric[i] = group_metric(tv, nd.first, nd.last);
     }
     tv.metric = metric.data();
-    const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
-    const double* K = Kd.data_ptr<double>() + b * 9;
+    std::vector<double> strat_base;
+    if (stratified) {  // the camera-wide uniform of each sorted point
+      strat_base.resize(tv.n);
+      const uint64_t stream = camera_stream(static_cast<uint64_t>(seed), b);
+      for (int64_t s = 0; s < tv.n; ++s) strat_base[s] = uniform01(stream, tv.id[s]);
+    }
+    const LaneJob job{tv, stratified ? strat_base.data() : nullptr, tree.nrm.data(), tree.off.data(), tree.zc.data(),
+                      Kd.data_ptr<double>() + b * 9, static_cast<uint64_t>(seed), b, width, static_cast<int>(m), eps,
+                      inclusion};
     int* idx_b = indices.data_ptr<int>() + b * P * m;
     S* prob_b = probs.data_ptr<S>() + b * P * m;
     S* total_b = total.data_ptr<S>() + b * P;
     int* work_b = work.data_ptr<int>() + b * P;
-    // One task per kTileSize^2 tile: its items (tile.h) once, then the tile's pixels.
+    // One task per kTileSize^2 tile: its items (tile.h), then the lane search (lanes.h) and each pixel's output.
     const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles_y = (height + kTileSize - 1) / kTileSize;
     const double log_theta = tile_log_theta(log_eps, static_cast<int>(m));
     const double log_far = tile_log_far(log_eps, static_cast<int>(m));
 #pragma omp parallel num_threads(nt)
     {
-      std::vector<double> key(m);
-      std::vector<TileItem> items, arranged;
-      std::vector<int> order, bins;
+      // a tile has at most one item per point: one pass of tile_items into a buffer of tv.n items
+      std::unique_ptr<TileItem[]> items(new TileItem[std::max<int64_t>(tv.n, 1)]);
+      const int cap = lane_buffer_capacity(static_cast<int>(m));
+      std::vector<double> bound, suffix, out_pi(static_cast<size_t>(kLanes) * m);
+      std::vector<int> order, out_id(static_cast<size_t>(kLanes) * m);
+      std::vector<LaneEntry> entries(static_cast<size_t>(kLanes) * cap);
+      std::vector<uint16_t> hist(static_cast<size_t>(kLanes) * kHistBins);
+      LaneResult res[kLanes];
 #pragma omp for schedule(dynamic, 1)
       for (int64_t t = 0; t < tiles_x * tiles_y; ++t) {
         const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
         const int64_t x1 = std::min(width, x0 + kTileSize), y1 = std::min(height, y0 + kTileSize);
         const double ux0 = x0 + 0.5, vy0 = y0 + 0.5, ux1 = x1 - 0.5, vy1 = y1 - 0.5;
-        int tile_nodes = 0;
-        const int n_items = tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, nullptr, nullptr);
-        items.resize(std::max(n_items, 1));
-        arranged.resize(std::max(n_items, 1));
-        order.resize(std::max(n_items, 1));
-        bins.resize(std::max(n_items, 1));
-        tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, items.data(), &tile_nodes);
-        const int n_near = arrange_tile_items(items.data(), n_items, arranged.data());
-        const PixelScratch scratch{order.data(), bins.data(), nullptr, 0};
-        const int tile_share = static_cast<int>((tile_nodes + (x1 - x0) * (y1 - y0) - 1) / ((x1 - x0) * (y1 - y0)));
-        for (int64_t py = y0; py < y1; ++py) {
-          for (int64_t px = x0; px < x1; ++px) {
-            const int64_t p = py * width + px;
-            const double u = double(px) + 0.5, v = double(py) + 0.5;
-            const Draw draw = pixel_draw(static_cast<uint64_t>(seed), b, p, width, stratified);
-            int cnt = 0;
-            int* idx = idx_b + p * m;
-            PixelStats st = sample_pixel<true>(tv, arranged.data(), n_items, n_near, u, v, draw, static_cast<int>(m), log_eps,
-                                         key.data(), idx, &cnt, scratch);
-            Ray ray = pixel_ray(K, u, v);
-            finalize_pixel(sv, u, v, ray, static_cast<int>(m), cnt, st.total, st.rest,
-                           st.exhaustive && st.evaluated == cnt, inclusion, key.data(), idx, prob_b + p * m);
-            total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
-            work_b[p] = st.evaluated;
-            if (counters && counters->nodes) counters->nodes[b * P + p] = st.nodes + tile_share;
+        const int n_items = tile_items(tv, ux0, vy0, ux1, vy1, log_theta, log_far, items.get(), nullptr);
+        const size_t need = std::max(n_items, 1);
+        if (order.size() < need) {
+          order.resize(need);
+          bound.resize(need * kLanes);
+          suffix.resize((need + 1) * kLanes);
+        }
+        const LaneScratch scratch{bound.data(),  suffix.data(), order.data(),  entries.data(),
+                                  hist.data(),   cap,           out_id.data(), out_pi.data()};
+        search(job, items.get(), n_items, x0, y0, static_cast<int>(x1 - x0), static_cast<int>(y1 - y0),
+               scratch, res);
+        for (int l = 0; l < kLanes; ++l) {
+          const int64_t px = x0 + l % kTileSize, py = y0 + l / kTileSize;
+          if (px >= x1 || py >= y1) continue;
+          const int64_t p = py * width + px;
+          int* idx = idx_b + p * m;
+          S* prob = prob_b + p * m;
+          for (int i = 0; i < res[l].cnt; ++i) {
+            idx[i] = out_id[l * m + i];
+            prob[i] = static_cast<S>(out_pi[l * m + i]);
           }
+          for (int64_t i = res[l].cnt; i < m; ++i) {
+            idx[i] = -1;
+            prob[i] = S(0);
+          }
+          total_b[p] = static_cast<S>(res[l].total);
+          work_b[p] = res[l].evaluated;
         }
       }
     }
@@ -219,6 +271,8 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
                                int64_t samples, double eps, int64_t seed, int64_t order, double tol, int64_t inclusion,
                                bool stratified) {
   check_cpu({mu, con, amp, sig2, nrm, off, zc, Ks});
+  const char* isa = nullptr;
+  const LaneSearchFn search = lane_search("auto", &isa);
   const int64_t B = amp.size(0);
   auto opts = mu.options();
   at::Tensor indices = at::empty({B, height, width, samples}, opts.dtype(at::kInt));
@@ -227,11 +281,23 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
   at::Tensor work = at::empty({B, height, width, 1}, opts.dtype(at::kInt));
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample", [&] {
-    sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, width, height, samples, std::log(eps), seed,
-                          static_cast<int>(order), tol, static_cast<int>(inclusion), stratified, indices, probs, total,
-                          work);
+    sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, width, height, samples, eps, seed,
+                          static_cast<int>(order), tol, static_cast<int>(inclusion), stratified, search, indices, probs,
+                          total, work);
   });
   return {indices, probs, total, work};
+}
+
+std::string sampler_isa(std::string name) {
+  const char* chosen = nullptr;
+  lane_search(name.c_str(), &chosen);
+  return chosen;
+}
+
+std::vector<std::string> sampler_isas() {
+  int count = 0;
+  const char* const* names = lane_isa_names(&count);
+  return std::vector<std::string>(names, names + count);
 }
 
 template <typename S>
