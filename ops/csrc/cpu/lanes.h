@@ -195,14 +195,55 @@ struct Tile {
   VL evals[kC];        // exact evaluations
   VL act[kC];          // lanes still searching (mask), and as bits:
   uint32_t active;
-  int cnt[kLanes];     // candidate buffer sizes
-  int top[kLanes];     // threshold bin (window index; -1 while the lane has at most m entries)
-  int below[kLanes];   // entries in bins below `top`
-  int64_t base[kLanes];  // absolute bin of window index 0
+  VL lane_id[kC];      // l
+  VL cnt[kC];          // candidate buffer sizes
+  VL top[kC];          // threshold bin (window index; -1 while the lane has at most m entries)
+  VL below[kC];        // entries in bins below `top`
+  VL base[kC];         // absolute bin of window index 0
 };
 
 inline double& lane(VD* v, int l) { return reinterpret_cast<double*>(v)[l]; }
 inline double lane(const VD* v, int l) { return reinterpret_cast<const double*>(v)[l]; }
+inline int64_t& lane(VL* v, int l) { return reinterpret_cast<int64_t*>(v)[l]; }
+inline int64_t lane(const VL* v, int l) { return reinterpret_cast<const int64_t*>(v)[l]; }
+
+// Masked scatters and gathers of lane values (AVX-512: one instruction; otherwise lane by lane, same result).
+inline void scatter_q(int64_t* base, VL idx, VL v, VL mask) {
+#if NS_LANE_ISA == 3
+  _mm512_mask_i64scatter_epi64(base, static_cast<__mmask8>(movemask(mask)), reinterpret_cast<__m512i>(idx),
+                               reinterpret_cast<__m512i>(v), 8);
+#else
+  for (int j = 0; j < kW; ++j)
+    if (mask[j]) base[idx[j]] = v[j];
+#endif
+}
+
+inline void scatter_d(double* base, VL idx, VD v, VL mask) {
+  scatter_q(reinterpret_cast<int64_t*>(base), idx, reinterpret_cast<VL>(v), mask);
+}
+
+inline VL gather_h(const int32_t* base, VL idx, VL mask) {
+#if NS_LANE_ISA == 3
+  const __m256i g = _mm512_mask_i64gather_epi32(_mm256_setzero_si256(), static_cast<__mmask8>(movemask(mask)),
+                                                reinterpret_cast<__m512i>(idx), base, 4);
+  return reinterpret_cast<VL>(_mm512_cvtepi32_epi64(g));
+#else
+  VL r = VL{};
+  for (int j = 0; j < kW; ++j)
+    if (mask[j]) r[j] = base[idx[j]];
+  return r;
+#endif
+}
+
+inline void scatter_h(int32_t* base, VL idx, VL v, VL mask) {
+#if NS_LANE_ISA == 3
+  _mm512_mask_i64scatter_epi32(base, static_cast<__mmask8>(movemask(mask)), reinterpret_cast<__m512i>(idx),
+                               _mm512_cvtepi64_epi32(reinterpret_cast<__m512i>(v)), 4);
+#else
+  for (int j = 0; j < kW; ++j)
+    if (mask[j]) base[idx[j]] = static_cast<int32_t>(v[j]);
+#endif
+}
 
 // Candidate buffers. A lane appends every candidate whose key is below its threshold; the threshold is the upper
 // edge of the histogram bin that holds the lane's (m+1)-th smallest key so far (bins of 1/8 octave: a key's bin
@@ -231,29 +272,30 @@ inline int window_bin(int64_t base, double key) {
 }
 
 inline LaneEntry* lane_entries(const LaneScratch& s, int l) { return s.entries + static_cast<int64_t>(l) * s.cap; }
-inline uint16_t* lane_hist(const LaneScratch& s, int l) { return s.hist + static_cast<int64_t>(l) * kHistBins; }
+inline int32_t* lane_hist(const LaneScratch& s, int l) { return s.hist + static_cast<int64_t>(l) * kHistBins; }
 
 // Builds lane l's histogram from its first m + 1 entries: the threshold bin is the bin of their largest key.
 inline void start_threshold(Tile& t, const LaneScratch& s, int m, int l) {
   const LaneEntry* e = lane_entries(s, l);
   double top = e[0].key;
   for (int i = 1; i <= m; ++i) top = dmax(top, e[i].key);
-  uint16_t* h = lane_hist(s, l);
+  int32_t* h = lane_hist(s, l);
   for (int i = 0; i < kHistBins; ++i) h[i] = 0;
-  t.base[l] = key_bin(top) - (kHistBins - 1);
-  for (int i = 0; i <= m; ++i) ++h[window_bin(t.base[l], e[i].key)];
-  t.top[l] = kHistBins - 1;
-  t.below[l] = m + 1 - h[kHistBins - 1];
-  lane(t.thr, l) = bin_top(t.base[l] + t.top[l]);
+  const int64_t base = key_bin(top) - (kHistBins - 1);
+  for (int i = 0; i <= m; ++i) ++h[window_bin(base, e[i].key)];
+  lane(t.base, l) = base;
+  lane(t.top, l) = kHistBins - 1;
+  lane(t.below, l) = m + 1 - h[kHistBins - 1];
+  lane(t.thr, l) = bin_top(base + kHistBins - 1);
 }
 
 // Keeps lane l's m + 1 smallest entries (by (key, id)) and restarts its histogram below the largest of them.
 inline void rebase(Tile& t, const LaneScratch& s, int m, int l) {
   LaneEntry* e = lane_entries(s, l);
-  std::nth_element(e, e + m, e + t.cnt[l], [](const LaneEntry& a, const LaneEntry& b) {
+  std::nth_element(e, e + m, e + lane(t.cnt, l), [](const LaneEntry& a, const LaneEntry& b) {
     return key_less(a.key, a.id, b.key, b.id);
   });
-  t.cnt[l] = m + 1;
+  lane(t.cnt, l) = m + 1;
   start_threshold(t, s, m, l);
 }
 
@@ -261,58 +303,72 @@ inline void rebase(Tile& t, const LaneScratch& s, int m, int l) {
 // in use (many keys in the threshold bin), rebases it.
 inline void purge(Tile& t, const LaneScratch& s, int m, int l) {
   LaneEntry* e = lane_entries(s, l);
-  const int64_t base = t.base[l];
-  const int top = t.top[l];
+  const int64_t base = lane(t.base, l), top = lane(t.top, l);
   int n = 0;
-  for (int i = 0; i < t.cnt[l]; ++i) {
+  for (int i = 0; i < lane(t.cnt, l); ++i) {
     e[n] = e[i];
     n += window_bin(base, e[i].key) <= top;
   }
-  t.cnt[l] = n;
+  lane(t.cnt, l) = n;
   if (4 * n > s.cap) rebase(t, s, m, l);
 }
 
-// Settles a candidate (sorted point sp, id pid, size lam > 0, key u / lam) at lane l.
-inline void settle(Tile& t, const LaneScratch& s, int m, int l, int sp, int pid, double lam, double key) {
-  if (!(key < lane(t.thr, l))) return;
-  int& cnt = t.cnt[l];
-  lane_entries(s, l)[cnt++] = LaneEntry{key, lam, pid, sp};
-  if (t.top[l] < 0) {
+// After lane l appended an entry: starts its threshold when it holds m + 1 entries, lowers the threshold bin while
+// more than m entries lie below it (a threshold fallen to bin 0, below the window, restarts lower), and purges a
+// full buffer.
+inline void fix_lane(Tile& t, const LaneScratch& s, int m, int l) {
+  int64_t& top = lane(t.top, l);
+  const int64_t cnt = lane(t.cnt, l);
+  if (top < 0) {
     if (cnt == m + 1) start_threshold(t, s, m, l);
     return;
   }
-  uint16_t* h = lane_hist(s, l);
-  const int b = window_bin(t.base[l], key);
-  ++h[b];
-  t.below[l] += b < t.top[l];
-  if (t.below[l] > m) {
-    int top = t.top[l], below = t.below[l];
+  int64_t& below = lane(t.below, l);
+  if (below > m) {  // lower the threshold bin to the bin of the (m+1)-th smallest key, skipping empty 8-bin blocks
+    const int32_t* h = lane_hist(s, l);
     do {
+      while (top >= 8 && (top & 7) == 0) {
+        uint64_t w[4];
+        std::memcpy(w, h + top - 8, sizeof w);
+        if (w[0] | w[1] | w[2] | w[3]) break;
+        top -= 8;
+      }
       --top;
       below -= h[top];
     } while (below > m);
-    t.top[l] = top;
-    t.below[l] = below;
-    lane(t.thr, l) = bin_top(t.base[l] + top);
-    if (top == 0) {  // the threshold fell below the window (bin 0 holds every smaller key): restart it lower
+    lane(t.thr, l) = bin_top(lane(t.base, l) + top);
+    if (top == 0) {
       purge(t, s, m, l);
-      if (t.top[l] == 0) rebase(t, s, m, l);
+      if (top == 0) rebase(t, s, m, l);
       return;
     }
   }
   if (cnt == s.cap / 2) purge(t, s, m, l);
 }
 
+// Settles a candidate (sorted point sp, id pid, size lam > 0, key u / lam) at lane l (the scalar twin of the vector
+// path in offer_lanes): a key below the lane's threshold joins its buffer and its histogram.
+inline void settle(Tile& t, const LaneScratch& s, int m, int l, int sp, int pid, double lam, double key) {
+  if (!(key < lane(t.thr, l))) return;
+  int64_t& cnt = lane(t.cnt, l);
+  lane_entries(s, l)[cnt++] = LaneEntry{key, lam, pid, sp};
+  if (lane(t.top, l) >= 0) {
+    const int b = window_bin(lane(t.base, l), key);
+    ++lane_hist(s, l)[b];
+    lane(t.below, l) += b < lane(t.top, l);
+  }
+  fix_lane(t, s, m, l);
+}
+
 // Lane l's exact sample: moves its m smallest entries (by (key, id)) to the front and returns xi_(m+1) (+inf when
 // the lane has at most m entries, i.e. every point with lambda > 0 it met).
 inline double select_sample(Tile& t, const LaneScratch& s, int m, int l) {
-  if (t.top[l] < 0) return INFINITY;
+  if (lane(t.top, l) < 0) return INFINITY;
   LaneEntry* e = lane_entries(s, l);
   LaneEntry* tmp = e + s.cap / 2;  // the buffer's second half (entries fill at most the first)
-  const int64_t base = t.base[l];
-  const int top = t.top[l];
+  const int64_t base = lane(t.base, l), top = lane(t.top, l);
   int below = 0, at = 0;
-  for (int i = 0; i < t.cnt[l]; ++i) {  // bins below `top` in place, the threshold bin aside, the rest dropped
+  for (int i = 0; i < lane(t.cnt, l); ++i) {  // bins below `top` in place, the threshold bin aside, the rest dropped
     const int b = window_bin(base, e[i].key);
     e[below] = e[i];
     tmp[at] = e[i];
@@ -321,7 +377,7 @@ inline double select_sample(Tile& t, const LaneScratch& s, int m, int l) {
   }
   std::sort(tmp, tmp + at, [](const LaneEntry& a, const LaneEntry& b) { return key_less(a.key, a.id, b.key, b.id); });
   for (int i = 0; below + i <= m; ++i) e[below + i] = tmp[i];
-  t.cnt[l] = m;
+  lane(t.cnt, l) = m;
   return e[m].key;
 }
 
@@ -331,8 +387,10 @@ inline double lane_uniform(const Tile& t, const LaneJob& job, int l, int s, int 
                                 static_cast<uint32_t>(pid)));
 }
 
-// Offers sorted point sp to every active lane. The candidates' keys u / lambda are computed for their whole
-// vector (the bits of uniform_of and of the scalar division), then settled one by one.
+// Offers sorted point sp to every active lane. Candidates (u may lie below xi_(m+1) lambda, tested on the high
+// hash) get their exact key u / lambda for the whole vector (the bits of uniform_of and of the scalar division);
+// those below their lane's threshold are appended to the lanes' buffers and histograms by masked scatters, the
+// same operations as settle's lane by lane; the rare follow-ups (fix_lane) run per lane.
 inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int sp) {
   const TreeView& T = job.tree;
   const double mx = T.mu[2 * sp], my = T.mu[2 * sp + 1];
@@ -340,8 +398,11 @@ inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int s
   const int pid = T.id[sp];
   const VU hi_key = bcast_u(static_cast<uint32_t>(pid) * 0x9E3779B9u);
   const VU lo_key = bcast_u(static_cast<uint32_t>(pid) * 0x85EBCA6Bu);
-  alignas(64) double lam_of[kLanes], key_of[kLanes];
-  uint32_t cand = 0;
+  VL payload;  // the entry's third word: id, sorted index
+  for (int j = 0; j < kW; ++j) payload[j] = static_cast<int64_t>(static_cast<uint32_t>(pid)) |
+                                            static_cast<int64_t>(static_cast<uint64_t>(static_cast<uint32_t>(sp)) << 32);
+  const int m = job.m;
+  uint32_t fix = 0;
   for (int c = 0; c < kC; ++c) {
     if (!((t.active >> (c * kW)) & ((1u << kW) - 1))) continue;  // no lane of this vector is searching
     const VD dx = t.U[c] - mx, dy = t.V[c] - my;
@@ -352,30 +413,40 @@ inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int s
     t.evals[c] -= act;
     const VD bound = t.thr[c] * lam * kBoundMargin;
     VD u;
-    uint32_t bits;
+    VL cand;
     if (job.strat_base) {
       u = job.strat_base[sp] + t.shift[c];
       u = u >= 1.0 ? u - 1.0 : u;
       u = u > 0.0 ? u : bcast(5.551115123125783e-17);
-      bits = movemask(act & (lam > 0.0) & (u < bound));
+      cand = act & (lam > 0.0) & (u < bound);
+      if (!movemask(cand)) continue;
     } else {
       const VU hi = lane_hash(t.a[c] + hi_key);
-      bits = movemask(act & (lam > 0.0) & (__builtin_convertvector(hi, VD) * 0x1p-32 < bound));
-      if (!bits) continue;
+      cand = act & (lam > 0.0) & (__builtin_convertvector(hi, VD) * 0x1p-32 < bound);
+      if (!movemask(cand)) continue;
       const VU lo = lane_hash(t.b[c] ^ lo_key);
       u = __builtin_convertvector(hi, VD) * 0x1p-32 + (__builtin_convertvector(lo >> 11, VD) + 0.5) * 0x1p-53;
     }
-    if (!bits) continue;
     const VD key = u / lam;
-    std::memcpy(lam_of + c * kW, &lam, sizeof lam);
-    std::memcpy(key_of + c * kW, &key, sizeof key);
-    cand |= bits << (c * kW);
+    const VL in = cand & (key < t.thr[c]);
+    if (!movemask(in)) continue;
+    const VL slot = (t.lane_id[c] * s.cap + t.cnt[c]) * 3;  // LaneEntry = 3 words: key, lam, (id, sorted)
+    scatter_d(reinterpret_cast<double*>(s.entries), slot, key, in);
+    scatter_d(reinterpret_cast<double*>(s.entries), slot + 1, lam, in);
+    scatter_q(reinterpret_cast<int64_t*>(s.entries), slot + 2, payload, in);
+    t.cnt[c] -= in;
+    const VL steady = in & (t.top[c] >= 0);
+    if (movemask(steady)) {
+      VL bin = reinterpret_cast<VL>(reinterpret_cast<VQ>(key) >> kHistShift) - t.base[c];
+      bin = bin < 0 ? VL{} : bin;
+      const VL hidx = t.lane_id[c] * kHistBins + bin;
+      scatter_h(s.hist, hidx, gather_h(s.hist, hidx, steady) + 1, steady);
+      t.below[c] -= steady & (bin < t.top[c]);
+    }
+    const VL after = in & ((t.top[c] < 0 ? t.cnt[c] == m + 1 : (t.below[c] > m) | (t.cnt[c] == s.cap / 2)));
+    fix |= movemask(after) << (c * kW);
   }
-  while (cand) {
-    const int l = __builtin_ctz(cand);
-    cand &= cand - 1;
-    settle(t, s, job.m, l, sp, pid, lam_of[l], key_of[l]);
-  }
+  for (; fix; fix &= fix - 1) fix_lane(t, s, m, __builtin_ctz(fix));
 }
 
 // The scalar twin of offer_lanes for lane l (far subtrees).
@@ -404,6 +475,7 @@ inline void subtree_lane(Tile& t, const LaneJob& job, const LaneScratch& s, int 
   int node_st[kStackSize];
   double lub_st[kStackSize], est_st[kStackSize];
   int sp = 0;
+  ensure_hermite(T, job.hermite, root);
   node_bound(T, root, u0, v0, &lub_st[0], &est_st[0]);
   node_st[sp++] = root;
   while (sp > 0) {
@@ -431,6 +503,7 @@ inline void subtree_lane(Tile& t, const LaneJob& job, const LaneScratch& s, int 
         offer_lane(t, job, s, ~child[c], l);
         cl[c] = -INFINITY;
       } else {
+        ensure_hermite(T, job.hermite, child[c]);
         node_bound(T, child[c], u0, v0, &cl[c], &ce[c]);
       }
     }
@@ -558,8 +631,11 @@ void NS_LANE_SEARCH(const LaneJob& job, const TileItem* items, int n, int64_t x0
     reinterpret_cast<uint32_t*>(t.a)[l] = static_cast<uint32_t>(d.stream);
     reinterpret_cast<uint32_t*>(t.b)[l] = static_cast<uint32_t>(d.stream >> 32);
     lane(t.shift, l) = d.shift;
-    t.cnt[l] = 0;
-    t.top[l] = -1;
+    lane(t.lane_id, l) = l;
+    lane(t.cnt, l) = 0;
+    lane(t.top, l) = -1;
+    lane(t.below, l) = 0;
+    lane(t.base, l) = 0;
   }
   for (int c = 0; c < kC; ++c) {
     t.thr[c] = bcast(INFINITY);
@@ -650,7 +726,7 @@ void NS_LANE_SEARCH(const LaneJob& job, const TileItem* items, int n, int64_t x0
     if (!((in_image >> l) & 1)) continue;
     const double rest = select_sample(t, s, job.m, l);
     const double total = lane(t.vis, l) + lane(t.est, l);
-    const int cnt = total < kMinTotal ? 0 : (t.cnt[l] < job.m ? t.cnt[l] : job.m);
+    const int cnt = total < kMinTotal ? 0 : static_cast<int>(lane(t.cnt, l) < job.m ? lane(t.cnt, l) : job.m);
     finish_lane(job, t, s, l, cnt, rest, total);
     out[l].total = total < kMinTotal ? 0.0 : total;
     out[l].cnt = cnt;

@@ -2,7 +2,10 @@
 // once per instruction set (lanes_<isa>.cpp) and picked at run time (lanes_dispatch.cpp). Every instruction set
 // computes the same bits: lanes are independent IEEE double arithmetic without contraction.
 #pragma once
+#include <cstddef>
+
 #include "../core/tile.h"
+#include "lazy_hermite.h"
 
 namespace nsplat {
 
@@ -11,6 +14,7 @@ constexpr int kLanes = kTileSize * kTileSize;
 // One camera's sampling job.
 struct LaneJob {
   TreeView tree;
+  LazyHermite hermite;       // the tree's expansions, computed on first use
   const double* strat_base;  // [n] camera-wide uniform of each sorted point (stratified draws), else null
   const double* nrm;         // [n,3] camera-space unit normals of the sorted points (per-pixel depth),
   const double* off;         // [n] their plane offsets n.q,
@@ -23,11 +27,15 @@ struct LaneJob {
   int inclusion;             // kThreshold or kPips (sps.h)
 };
 
-// A sampled point of a lane: its key u / lambda, lambda, original id and sorted index.
+// A sampled point of a lane: its key u / lambda, lambda, original id and sorted index (three 64-bit words: the
+// vector path scatters them as such).
 struct LaneEntry {
   double key, lam;
   int id, sorted;
 };
+
+static_assert(sizeof(LaneEntry) == 24 && offsetof(LaneEntry, id) == 16 && offsetof(LaneEntry, sorted) == 20,
+              "lanes.h scatters a LaneEntry as three 64-bit words");
 
 constexpr int kHistBins = 512;  // bins of a lane's threshold histogram (lanes.h)
 
@@ -37,7 +45,7 @@ struct LaneScratch {
   double* suffix;      // [(n + 1) * kLanes] pending bound mass in visit order
   int* order;          // [n] visit order
   LaneEntry* entries;  // [kLanes * cap] per-lane candidate buffers
-  uint16_t* hist;      // [kLanes * kHistBins] per-lane threshold histograms
+  int32_t* hist;       // [kLanes * kHistBins] per-lane threshold histograms
   int cap;             // buffer capacity (lane_buffer_capacity)
   int* out_id;         // [kLanes * m] each lane's sample front to back: original point ids
   double* out_pi;      //   and inclusion probabilities

@@ -29,7 +29,9 @@ struct CpuTree {
   std::vector<NodeAgg> agg;
   std::vector<int> herm_p, parent_int, parent_leaf, flags, id;
   std::vector<int64_t> herm_off;
-  std::vector<double> herm_err, herm_coef, mu, con, logA, amp, sig2, nrm, off, zc;
+  std::vector<double> herm_err, mu, con, logA, amp, sig2, nrm, off, zc;
+  std::unique_ptr<double[]> herm_coef;                // filled on first use (lazy_hermite.h)
+  std::unique_ptr<std::atomic<uint8_t>[]> herm_state;  // zero: none computed
   int64_t n = 0;
 
   TreeView view() const {
@@ -40,7 +42,7 @@ struct CpuTree {
     t.herm_p = herm_p.data();
     t.herm_off = herm_off.data();
     t.herm_err = herm_err.data();
-    t.herm_coef = herm_coef.data();
+    t.herm_coef = herm_coef.get();
     t.mu = mu.data();
     t.con = con.data();
     t.logA = logA.data();
@@ -145,11 +147,8 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
     T.herm_off[i] = total;
     total += static_cast<int64_t>(T.herm_p[i]) * T.herm_p[i];
   }
-  T.herm_coef.assign(std::max<int64_t>(total, 1), 0.0);
-#pragma omp parallel for num_threads(nt) schedule(dynamic, 64)
-  for (int64_t i = 0; i < ni; ++i)
-    expansion_coefficients(i, T.nodes.data(), T.agg.data(), T.herm_p.data(), T.herm_off.data(), T.mu.data(), T.amp.data(),
-                           T.herm_coef.data());
+  T.herm_coef.reset(new double[std::max<int64_t>(total, 1)]);
+  T.herm_state.reset(new std::atomic<uint8_t>[ni]());
 }
 
 template <typename S>
@@ -196,9 +195,12 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
     TreeView tv = tree.view();
     std::vector<ItemMetric> metric(std::max<int64_t>(tv.n - 1, 1));
 #pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t i = 0; i < tv.n - 1; ++i) {
-      const InternalNode& nd = tv.nodes[i];
-      if (nd.last - nd.first + 1 <= kGroupSize) metric[i] = group_metric(tv, nd.first, nd.last);
+    for (int64_t i = 0; i < tv.n - 1; ++i) {  // the groups tile_items can cut: nodes of <= kGroupSize points
+      const InternalNode& nd = tv.nodes[i];     // whose parent has more
+      const int parent = i == 0 ? -1 : tree.parent_int[i];
+      if (nd.last - nd.first + 1 <= kGroupSize &&
+          (parent < 0 || tv.nodes[parent].last - tv.nodes[parent].first + 1 > kGroupSize))
+        metric[i] = group_metric(tv, nd.first, nd.last);
     }
     tv.metric = metric.data();
     std::vector<double> strat_base;
@@ -207,7 +209,8 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
       const uint64_t stream = camera_stream(static_cast<uint64_t>(seed), b);
       for (int64_t s = 0; s < tv.n; ++s) strat_base[s] = uniform01(stream, tv.id[s]);
     }
-    const LaneJob job{tv, stratified ? strat_base.data() : nullptr, tree.nrm.data(), tree.off.data(), tree.zc.data(),
+    const LazyHermite hermite{tree.herm_state.get(), tree.amp.data(), tree.herm_coef.get()};
+    const LaneJob job{tv, hermite, stratified ? strat_base.data() : nullptr, tree.nrm.data(), tree.off.data(), tree.zc.data(),
                       Kd.data_ptr<double>() + b * 9, static_cast<uint64_t>(seed), b, width, static_cast<int>(m), eps,
                       inclusion};
     int* idx_b = indices.data_ptr<int>() + b * P * m;
@@ -226,7 +229,7 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
       std::vector<double> bound, suffix, out_pi(static_cast<size_t>(kLanes) * m);
       std::vector<int> order, out_id(static_cast<size_t>(kLanes) * m);
       std::vector<LaneEntry> entries(static_cast<size_t>(kLanes) * cap);
-      std::vector<uint16_t> hist(static_cast<size_t>(kLanes) * kHistBins);
+      std::vector<int32_t> hist(static_cast<size_t>(kLanes) * kHistBins);
       LaneResult res[kLanes];
 #pragma omp for schedule(dynamic, 1)
       for (int64_t t = 0; t < tiles_x * tiles_y; ++t) {
