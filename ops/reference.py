@@ -17,6 +17,10 @@ from .projection import ALPHA_MAX, PARALLEL_COS, Projected, pixel_rays, project
 from .rng import uniforms
 from .validation import check_backface_cull, check_geometry, check_settings
 
+#: The samplers' floor on a pixel's total size measure Lambda: below it a pixel gets no sample (its alpha is
+#: below half an ulp of a float 1). ops/csrc/core/common.h: kMinTotal.
+MIN_TOTAL = 2.0**-24
+
 
 def pixel_centres(width: int, height: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``[H*W, 2]`` pixel centre coordinates ``(u, v) = (col + 0.5, row + 0.5)`` in row-major order."""

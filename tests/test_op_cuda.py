@@ -28,7 +28,7 @@ import torch
 
 import nsplat.ops.library as library
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
-from nsplat.ops.reference import size_measures, sps_bruteforce
+from nsplat.ops.reference import MIN_TOTAL, size_measures, sps_bruteforce
 from nsplat.ops.validation import inclusion_for
 from nsplat.ops.build import CSRC, build_dir, source_hash
 from tests.conftest import make_cameras, make_scene
@@ -365,7 +365,7 @@ def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold"):
     function of each backend's own Lambda_hat, which is checked instead; tests/test_op_sampler.py checks their
     formula.) Each backend's Lambda_hat is within its documented bound of the dense total
     (|Lambda_hat - Lambda| <= eps / xi_(m) wherever the sample is full, + 1e-6 relative; a pixel reported empty,
-    Lambda_hat = 0, is one whose total is below the floor of 1e-10)."""
+    Lambda_hat = 0, is one whose total is below the floor MIN_TOTAL)."""
     (gi, gp, gt, _), (ri, rp, rt, _) = got, ref
     B, H, W, m = gi.shape
     differ = 0
@@ -376,7 +376,7 @@ def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold"):
         for idx, tot in ((gi[b], gt[b]), (ri[b], rt[b])):
             full = (idx.reshape(-1, m) >= 0).all(1).numpy()
             est = tot.reshape(-1).double().numpy()
-            bound = np.where(full, eps * np.exp(-keys[:, m - 1]), 0.0) + 1e-6 * dense + np.where(est == 0, 1e-10, 0)
+            bound = np.where(full, eps * np.exp(-keys[:, m - 1]), 0.0) + 1e-6 * dense + np.where(est == 0, MIN_TOTAL, 0)
             assert np.all(np.abs(est - dense) <= bound), float(np.max(np.abs(est - dense) - bound))
         a_idx, a_p, b_idx, b_p = (t[b].reshape(-1, m) for t in (gi, gp, ri, rp))
         for p in range(a_idx.shape[0]):

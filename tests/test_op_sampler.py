@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from nsplat.ops import project, sample, splat
-from nsplat.ops.reference import pips_probabilities, size_measures, sps_bruteforce, sps_inclusion_probabilities
+from nsplat.ops.reference import (MIN_TOTAL, pips_probabilities, size_measures, sps_bruteforce,
+                                  sps_inclusion_probabilities)
 from tests.conftest import make_cameras, make_scene
 
 W, H = 24, 20
@@ -36,10 +37,13 @@ def test_sample_equals_bruteforce_sps(N, m, eps, scale):
             lam = size_measures(proj, b, W, H)
             ref_idx, ref_keys = sps_bruteforce(lam, m, seed, b)
             got = idx[b].reshape(-1, m).numpy()
+            total = lam.sum(1).numpy()
             for p in range(got.shape[0]):
                 k_m, k_next = ref_keys[p, m - 1], ref_keys[p, m]
                 if np.isfinite(k_next) and abs(k_next - k_m) < 1e-9:
                     continue  # an exact near-tie at the boundary: either choice is SPS
+                if total[p] < 2 * MIN_TOTAL:
+                    continue  # at or below the floor: no sample (test (e))
                 compared += 1
                 if set(got[p][got[p] >= 0].tolist()) != set(ref_idx[p][ref_idx[p] >= 0].tolist()):
                     mismatched += 1
@@ -121,7 +125,7 @@ def test_a_few_huge_splats_do_not_loosen_the_bounds_of_the_small_ones():
 
 
 def test_pixels_below_floor_are_empty_and_show_background():
-    """(e) Pixels whose total size measure is below the floor (1e-10) get no sample and the background."""
+    """(e) Pixels whose total size measure is below the floor (MIN_TOTAL = 2^-24) get no sample and the background."""
     dtype = torch.float64
     means = torch.tensor([[-0.9, 0.0, 0.0]], dtype=dtype)
     normals = torch.tensor([[0.0, 0.0, -1.0]], dtype=dtype)
@@ -132,11 +136,11 @@ def test_pixels_below_floor_are_empty_and_show_background():
                 samples=4, background=bg)
     proj = project(means, normals, scales, torch.ones(1, dtype=dtype), V, K, near=0.01, far=1e10, lowpass=1.0)
     dense_total = size_measures(proj, 0, 64, 8).sum(1).reshape(8, 64)
-    below = dense_total < 1e-10
+    below = dense_total < MIN_TOTAL
     assert below.any() and (~below).any()
     assert bool((out.indices[0][below] == -1).all())
     assert torch.allclose(out.image[0][below], bg.expand(int(below.sum()), 3))
-    assert bool((out.indices[0][dense_total > 1e-9][:, 0] == 0).all())
+    assert bool((out.indices[0][dense_total > 2 * MIN_TOTAL][:, 0] == 0).all())
 
 
 def test_inclusion_frequencies_match_exact_sps_and_pips_gap_is_measured():
@@ -190,7 +194,7 @@ def test_threshold_probabilities_equal_priority_weights_of_exact_sps(stratified)
         got_i = idx[b].reshape(-1, m).numpy()
         got_p = probs[b].reshape(-1, m).numpy()
         for p in range(W * H):
-            if abs(srt[p, m] - srt[p, m - 1]) < 1e-9 or lam[p].sum() < 1e-10:
+            if abs(srt[p, m] - srt[p, m - 1]) < 1e-9 or lam[p].sum() < MIN_TOTAL:
                 continue
             ref = set(np.argsort(keys[p], kind="stable")[:m][np.isfinite(srt[p, :m])].tolist())
             sel = got_i[p] >= 0

@@ -117,14 +117,14 @@ class FitConfig:
 
 def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0, strategies: list[Strategy] | None = None,
           views: PosedViews | None = None) -> Trainables:
-    """Module ``scene`` (and the strategies' per-point state, e.g. ``density``), Adam ``fit`` over its
+    """Module ``scene`` (and the strategies' per-point state, e.g. ``density``), Adam ``fit`` (fused: one native loop over the parameters) over its
     learnable attributes, the epoch scheduler and the generator of the strategies' draws.
 
     ``strategies`` default to ``cfg.strategies()``; each checks that it applies to ``scene`` (and ``views``)."""
     modules: dict[str, torch.nn.Module] = {"scene": scene}
     for strategy in cfg.strategies() if strategies is None else strategies:
         modules.update(strategy.attach(scene, views))
-    optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas))
+    optimizer = torch.optim.Adam(scene.param_groups(cfg.learn), betas=tuple(cfg.betas), fused=True)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda epoch: cfg.rate_factor(epoch))
     return Trainables(modules=modules, optimizers={"fit": optimizer}, schedulers={"fit": scheduler},
                       generator=torch.Generator().manual_seed(seed))

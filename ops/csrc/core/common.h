@@ -16,7 +16,7 @@ namespace nsplat {
 constexpr double kAlphaMax = 0.99;      // alpha clamp of a single splat
 constexpr double kParallelCos = 1e-2;   // ray/plane cosine below which the centre depth is used
 // Sampler constants.
-constexpr double kMinTotal = 1e-10;     // pixels whose total size measure is below this get no sample
+constexpr double kMinTotal = 0x1p-24;  // pixels whose total size measure is below this (half an ulp of a float 1) get no sample
 constexpr double kMinProb = 1e-8;       // floor on pi in the Horvitz-Thompson weights 1/pi
 constexpr int kLeafSize = 8;            // search_subtree evaluates nodes with at most this many points exactly
 constexpr int kStackSize = 72;          // DFS stack; the radix tree over 64-bit keys has depth <= 64

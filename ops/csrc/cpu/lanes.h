@@ -246,8 +246,9 @@ inline void scatter_h(int32_t* base, VL idx, VL v, VL mask) {
 }
 
 // Candidate buffers. A lane appends every candidate whose key is below its threshold; the threshold is the upper
-// edge of the histogram bin that holds the lane's (m+1)-th smallest key so far (bins of 1/8 octave: a key's bin
-// is its bit pattern >> kHistShift), so it bounds that key from above within a factor 1.125 and only decreases.
+// edge of a histogram bin at or above the one that holds the lane's (m+1)-th smallest key so far (bins of 1/8
+// octave: a key's bin is its bit pattern >> kHistShift; lowered to that bin once kWalkSlack more entries lie
+// below it), so it bounds that key from above and only decreases.
 // The histogram covers a window of kHistBins bins below the lane's first threshold (smaller keys count in bin 0).
 // A full buffer drops the entries above the threshold; the exact sample and xi_(m+1) are selected at the end.
 constexpr int kHistShift = 49;
@@ -313,33 +314,46 @@ inline void purge(Tile& t, const LaneScratch& s, int m, int l) {
   if (4 * n > s.cap) rebase(t, s, m, l);
 }
 
-// After lane l appended an entry: starts its threshold when it holds m + 1 entries, lowers the threshold bin while
-// more than m entries lie below it (a threshold fallen to bin 0, below the window, restarts lower), and purges a
-// full buffer.
-inline void fix_lane(Tile& t, const LaneScratch& s, int m, int l) {
+// Lowers lane l's threshold bin to the bin of its (m+1)-th smallest key (while more than m entries lie below it),
+// skipping empty 8-bin blocks.
+inline void lower_threshold(Tile& t, const LaneScratch& s, int m, int l) {
   int64_t& top = lane(t.top, l);
+  int64_t& below = lane(t.below, l);
+  const int32_t* h = lane_hist(s, l);
+  do {
+    while (top >= 8 && (top & 7) == 0) {
+      uint64_t w[4];
+      std::memcpy(w, h + top - 8, sizeof w);
+      if (w[0] | w[1] | w[2] | w[3]) break;
+      top -= 8;
+    }
+    --top;
+    below -= h[top];
+  } while (below > m);
+  lane(t.thr, l) = bin_top(lane(t.base, l) + top);
+}
+
+// The threshold is lowered once more than m + kWalkSlack entries lie below its bin (lazily: until then it is a
+// looser upper bound of xi_(m+1), which the stop test and the candidate test may use; the final selection lowers
+// it exactly).
+constexpr int kWalkSlack = 4;
+
+// After lane l appended an entry: starts its threshold when it holds m + 1 entries, lowers the threshold bin when
+// more than m + kWalkSlack entries lie below it (a threshold fallen to bin 0, below the window, restarts lower),
+// and purges a full buffer.
+inline void fix_lane(Tile& t, const LaneScratch& s, int m, int l) {
+  const int64_t top = lane(t.top, l);
   const int64_t cnt = lane(t.cnt, l);
   if (top < 0) {
     if (cnt == m + 1) start_threshold(t, s, m, l);
     return;
   }
-  int64_t& below = lane(t.below, l);
-  if (below > m) {  // lower the threshold bin to the bin of the (m+1)-th smallest key, skipping empty 8-bin blocks
-    const int32_t* h = lane_hist(s, l);
-    do {
-      while (top >= 8 && (top & 7) == 0) {
-        uint64_t w[4];
-        std::memcpy(w, h + top - 8, sizeof w);
-        if (w[0] | w[1] | w[2] | w[3]) break;
-        top -= 8;
-      }
-      --top;
-      below -= h[top];
-    } while (below > m);
-    lane(t.thr, l) = bin_top(lane(t.base, l) + top);
-    if (top == 0) {
+  const int64_t below = lane(t.below, l);
+  if (below > m + kWalkSlack || (cnt == s.cap / 2 && below > m)) {  // a full buffer is purged below the exact bin
+    lower_threshold(t, s, m, l);
+    if (lane(t.top, l) == 0) {
       purge(t, s, m, l);
-      if (top == 0) rebase(t, s, m, l);
+      if (lane(t.top, l) == 0) rebase(t, s, m, l);
       return;
     }
   }
@@ -364,6 +378,7 @@ inline void settle(Tile& t, const LaneScratch& s, int m, int l, int sp, int pid,
 // the lane has at most m entries, i.e. every point with lambda > 0 it met).
 inline double select_sample(Tile& t, const LaneScratch& s, int m, int l) {
   if (lane(t.top, l) < 0) return INFINITY;
+  if (lane(t.below, l) > m) lower_threshold(t, s, m, l);
   LaneEntry* e = lane_entries(s, l);
   LaneEntry* tmp = e + s.cap / 2;  // the buffer's second half (entries fill at most the first)
   const int64_t base = lane(t.base, l), top = lane(t.top, l);
@@ -443,7 +458,7 @@ inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int s
       scatter_h(s.hist, hidx, gather_h(s.hist, hidx, steady) + 1, steady);
       t.below[c] -= steady & (bin < t.top[c]);
     }
-    const VL after = in & ((t.top[c] < 0 ? t.cnt[c] == m + 1 : (t.below[c] > m) | (t.cnt[c] == s.cap / 2)));
+    const VL after = in & ((t.top[c] < 0 ? t.cnt[c] == m + 1 : (t.below[c] > m + kWalkSlack) | (t.cnt[c] == s.cap / 2)));
     fix |= movemask(after) << (c * kW);
   }
   for (; fix; fix &= fix - 1) fix_lane(t, s, m, __builtin_ctz(fix));

@@ -37,7 +37,7 @@ struct LaneEntry {
 static_assert(sizeof(LaneEntry) == 24 && offsetof(LaneEntry, id) == 16 && offsetof(LaneEntry, sorted) == 20,
               "lanes.h scatters a LaneEntry as three 64-bit words");
 
-constexpr int kHistBins = 512;  // bins of a lane's threshold histogram (lanes.h)
+constexpr int kHistBins = 1024;  // bins of a lane's threshold histogram (lanes.h): 128 octaves
 
 // Per-thread scratch for a tile of n items and sample size m.
 struct LaneScratch {
