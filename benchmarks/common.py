@@ -36,9 +36,9 @@ _OUT = os.environ.get("NSPLAT_BENCH_OUT")
 RESULTS = Path(_OUT) / "results" if _OUT else REPO / "benchmarks" / "results"
 #: Where figures go (a subfolder per topic, as in ``docs/images/``).
 IMAGES = Path(_OUT) / "images" if _OUT else REPO / "docs" / "images"
-#: The CPU flags worth naming beside a timing (vector units the op's build may use).
-CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "amx_tile", "neon",
-             "asimd", "sve")
+#: The CPU flags worth naming beside a timing (vector units the op's build may use, native bfloat16 for the networks).
+CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16", "amx_tile",
+             "amx_bf16", "neon", "asimd", "sve")
 
 
 def _git(*args: str) -> str:
