@@ -7,16 +7,19 @@ threads; the median over ``--reps`` steps, float32 and bfloat16 interleaved step
 machine's load hits both alike, with the CPU seconds beside the wall seconds), the one-off compile time and the
 largest output difference against float32 eager. A lever that fails is a row with its error, not the end of the
 run: eager levers catch their exceptions; ``torch.compile`` runs in a child process, so that a crash of inductor's
-generated kernels (a signal) is caught too.
+generated kernels (a signal) is caught too, and a child that does not answer within ``--compile-timeout`` seconds
+is killed.
 
     python -m benchmarks.network_levers                  # both shipped sizes (default 64², lego 200²)
     python -m benchmarks.network_levers --sizes 64 --reps 20
     ONEDNN_MAX_CPU_ISA=AVX512_CORE python -m benchmarks.network_levers   # as on an AVX-512 CPU without BF16
     ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2 python -m benchmarks.network_levers   # as on an AVX2 CPU
 
-Writes ``benchmarks/results/network_levers.json`` (with the machine record, the CPU's native-bfloat16 features
-and what ``neural.precision: auto`` picks here). With the instruction sets capped (:data:`ISA_CAPS`: the kernels
-of a lesser CPU, on this CPU's cores) it writes ``network_levers-<caps>.json`` naming the caps.
+Writes ``benchmarks/results/network_levers-<sizes>.json``, e.g. ``network_levers-64.json`` (with the machine
+record, the CPU's native-bfloat16 features and what ``neural.precision: auto`` picks here). With the instruction
+sets capped (:data:`ISA_CAPS`: the kernels of a lesser CPU, on this CPU's cores) it writes
+``network_levers-<sizes>-<caps>.json`` naming the caps. (``network_levers.json`` is the record of an earlier
+AVX2-only CPU, docs/history.md.)
 """
 from __future__ import annotations
 
@@ -42,6 +45,9 @@ from nsplat.tasks.neural.config import Config
 SIZES = {64: "default.yaml", 200: "lego.yaml"}
 #: Environment variables that cap the instruction sets oneDNN and ATen's own kernels use.
 ISA_CAPS = ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")
+#: Signals of a crash, given back their default action in the compiling child: a failure handler installed by an
+#: imported library (glog's, through pycolmap) can deadlock in ``malloc`` after a heap corruption instead of ending it.
+CRASH_SIGNALS = (signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT)
 Step = Callable[[], torch.Tensor]
 
 
@@ -130,6 +136,8 @@ def _eager(net: str, side: int, batch: int, model: torch.nn.Module, args: tuple[
 def _compile_child(net: str, side: int, reps: int, conn: Connection) -> None:
     """In its own process: ``torch.compile`` of the float32 network; sends its output's difference from eager, the
     compile seconds and the timed steps, or the error."""
+    for sig in CRASH_SIGNALS:
+        signal.signal(sig, signal.SIG_DFL)
     torch.set_num_threads(2)
     try:
         _, nets = _networks(side)
@@ -145,14 +153,19 @@ def _compile_child(net: str, side: int, reps: int, conn: Connection) -> None:
         conn.send({"error": _error(exc)})
 
 
-def _compiled(net: str, side: int, batch: int, reps: int, base: float) -> dict:
-    """The ``torch.compile`` lever, run in a child process: an exception of the compiler and a crash of its
-    generated kernels (a signal) alike become the row's error."""
+def _compiled(net: str, side: int, batch: int, reps: int, base: float, timeout_s: float) -> dict:
+    """The ``torch.compile`` lever, run in a child process: an exception of the compiler, a crash of its
+    generated kernels (a signal) and no answer within ``timeout_s`` seconds (the child is killed) alike become the
+    row's error."""
     mp = multiprocessing.get_context("spawn")
     receive, send = mp.Pipe(duplex=False)
     proc = mp.Process(target=_compile_child, args=(net, side, reps, send))
     proc.start()
     send.close()
+    if not receive.poll(timeout_s):
+        proc.kill()
+        proc.join()
+        return _failed(net, side, batch, "torch.compile", f"no answer within {timeout_s:.0f} s (killed)")
     try:
         res = receive.recv()
     except EOFError:  # the child died before sending
@@ -168,15 +181,15 @@ def _compiled(net: str, side: int, batch: int, reps: int, base: float) -> dict:
                 compile_s=res["compile_s"])
 
 
-def measure(side: int, reps: int, compile_reps: int) -> list[dict]:
-    """Every lever's row for both networks of the config at ``side``."""
+def measure(side: int, reps: int, compile_reps: int, compile_timeout_s: float) -> list[dict]:
+    """Every lever's row for both networks of the config at ``side`` (:func:`_eager`, :func:`_compiled`)."""
     batch, nets = _networks(side)
     rows = []
     for name, (model, args) in nets.items():
         eager, base = _eager(name, side, batch, model, args, reps)
         rows += eager
         if base is not None and compile_reps > 0:
-            rows.append(_compiled(name, side, batch, compile_reps, base))
+            rows.append(_compiled(name, side, batch, compile_reps, base, compile_timeout_s))
         print(f"{name} {side}² done", file=sys.stderr, flush=True)
     return rows
 
@@ -187,9 +200,11 @@ def _cell(r: dict, key: str, fmt: str) -> str:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--sizes", nargs="*", type=int, default=sorted(SIZES), choices=sorted(SIZES))
+    p.add_argument("--sizes", nargs="+", type=int, default=sorted(SIZES), choices=sorted(SIZES))
     p.add_argument("--reps", type=int, default=20, help="timed steps per eager lever (interleaved)")
     p.add_argument("--compile-reps", type=int, default=5, help="timed steps of the compiled network (0: skip it)")
+    p.add_argument("--compile-timeout", type=float, default=900.0,
+                   help="seconds the compiling child may take (compile and timed steps) before it is killed")
     args = p.parse_args()
     torch.set_num_threads(2)
     load = os.getloadavg()
@@ -197,7 +212,7 @@ def main() -> None:
     dtype, why = precision.auto_dtype(torch.device("cpu"), caps)
     auto = str(dtype).removeprefix("torch.")
     capped = {k: os.environ[k] for k in ISA_CAPS if os.environ.get(k)}
-    rows = [r for side in args.sizes for r in measure(side, args.reps, args.compile_reps)]
+    rows = [r for side in args.sizes for r in measure(side, args.reps, args.compile_reps, args.compile_timeout)]
     table = markdown(["net", "side", "batch", "lever", "fwd+bwd s (median)", "CPU s", "× float32", "max |Δ| vs float32",
                       "compile s", "error"],
                      [[r["net"], r["side"], r["batch"], r["lever"], _cell(r, "step_s", ".4f"), _cell(r, "cpu_s", ".4f"),
@@ -208,10 +223,11 @@ def main() -> None:
           f"CPU's flags, whatever the caps); "
           f"2 threads, load before {load[0]:.2f}, after {os.getloadavg()[0]:.2f}"
           + "".join(f"; {k}={v}" for k, v in capped.items()))
-    name = "-".join(["network_levers", *(v.lower() for v in capped.values())])
+    name = "-".join(["network_levers", *map(str, args.sizes), *(v.lower() for v in capped.values())])
     write_result(name, {"isa_caps": capped, "capability": torch.backends.cpu.get_cpu_capability(),
                         "native_bf16": [f for f in precision.NATIVE_BF16 if f in caps], "auto": auto, "threads": 2,
-                        "reps": args.reps, "load_before": load, "load_after": list(os.getloadavg()), "rows": rows},
+                        "reps": args.reps, "compile_reps": args.compile_reps, "compile_timeout_s": args.compile_timeout,
+                        "load_before": load, "load_after": list(os.getloadavg()), "rows": rows},
                  table)
 
 

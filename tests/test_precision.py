@@ -117,9 +117,10 @@ def test_the_setting_is_validated_naming_its_key(tmp_path):
 
 
 def test_stage2_with_each_precision_reaches_the_same_loss(tmp_path):
-    """30 stage-2 steps (GAN from step 15) with float32 and bfloat16 from the same stage 1: the op's feature
-    images are identical (it runs in float32 under either), the networks' outputs are float32, the train-view
-    L1 ends within 5 % (module docstring), and weights and optimiser state stay float32."""
+    """30 stage-2 steps (GAN from step 15) with float32 and bfloat16 from the same stage 1: the U-Net and the
+    discriminator compute in the setting's dtype (in training and in the renders), the op's feature images are
+    identical (it runs in float32 under either), the networks' outputs reach the losses in float32, the
+    train-view L1 ends within 5 % (module docstring), and weights and optimiser state stay float32."""
     ends, conds = {}, {}
     geo = None
     for name in ("float32", "bfloat16"):
@@ -133,12 +134,16 @@ def test_stage2_with_each_precision_reaches_the_same_loss(tmp_path):
         t = build(cfg, neural_scene_from(cfg, geo, seed=0))
         model = t.modules["model"]
         assert model.compute_dtype == getattr(torch, name)
+        computed: dict[str, set[torch.dtype]] = {"unet": set(), "discriminator": set()}
+        for label, layer in (("unet", model.unet.head), ("discriminator", t.modules["disc"])):
+            layer.register_forward_hook(lambda m, args, out, seen=computed[label]: seen.add(out.dtype))
         rgb, conds[name] = render_split(model, train, seed=123)
         assert rgb.dtype == conds[name].dtype == torch.float32
         before = float((rgb - train.images).abs().mean())
         for k in range(cfg.neural.steps):
             train_step(cfg.neural, t, train, k)
         ends[name] = float((render_split(model, train, seed=123)[0] - train.images).abs().mean())
+        assert computed == {"unet": {model.compute_dtype}, "discriminator": {model.compute_dtype}}, computed
         assert ends[name] < 0.8 * before, (name, before, ends[name])
         for module in t.modules.values():
             assert all(v.dtype == torch.float32 for v in module.state_dict().values() if v.is_floating_point())
