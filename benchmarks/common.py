@@ -36,9 +36,9 @@ _OUT = os.environ.get("NSPLAT_BENCH_OUT")
 RESULTS = Path(_OUT) / "results" if _OUT else REPO / "benchmarks" / "results"
 #: Where figures go (a subfolder per topic, as in ``docs/images/``).
 IMAGES = Path(_OUT) / "images" if _OUT else REPO / "docs" / "images"
-#: The CPU flags worth naming beside a timing (vector units the op's build may use).
-CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_vnni", "amx_tile", "neon",
-             "asimd", "sve")
+#: The CPU flags worth naming beside a timing (vector units the op's build may use, native bfloat16 for the networks).
+CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16",
+             "amx_tile", "amx_bf16", "neon", "asimd", "sve")
 
 
 def _git(*args: str) -> str:
@@ -49,8 +49,9 @@ def _git(*args: str) -> str:
 
 
 def cpu() -> dict[str, Any]:
-    """``{model, flags, cores}``: the CPU's model name and the :data:`CPU_FLAGS` it has (from ``/proc/cpuinfo``;
-    ``platform.processor()`` elsewhere)."""
+    """``{model, family, flags, cores}``: the CPU's model name, its ``vendor family/model/stepping`` (which names
+    the generation where a virtual machine masks the model name, e.g. ``AuthenticAMD 25/17/1``: Zen 4) and the
+    :data:`CPU_FLAGS` it has (from ``/proc/cpuinfo``; ``platform.processor()`` elsewhere)."""
     model, flags = platform.processor() or platform.machine(), set()
     try:
         text = Path("/proc/cpuinfo").read_text()
@@ -58,9 +59,11 @@ def cpu() -> dict[str, Any]:
         text = ""
     if m := re.search(r"^model name\s*:\s*(.+)$", text, re.M):
         model = m.group(1).strip()
+    ids = [re.search(rf"^{key}\s*:\s*(\S+)", text, re.M) for key in ("vendor_id", "cpu family", "model", "stepping")]
+    family = f"{ids[0].group(1)} {'/'.join(m.group(1) for m in ids[1:])}" if all(ids) else None
     if m := re.search(r"^(?:flags|Features)\s*:\s*(.+)$", text, re.M):
         flags = set(m.group(1).split())
-    return {"model": model, "flags": [f for f in CPU_FLAGS if f in flags], "cores": os.cpu_count()}
+    return {"model": model, "family": family, "flags": [f for f in CPU_FLAGS if f in flags], "cores": os.cpu_count()}
 
 
 def machine() -> dict[str, Any]:

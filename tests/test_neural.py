@@ -198,7 +198,7 @@ def test_eval_draws_average_independent_feature_images(cache, tmp_path):
         draws = [model.feature_image(views.viewmats, views.Ks, views.width, views.height, 5 + j * DRAW_STRIDE)
                  for j in range(3)]
         expected = torch.stack(draws).mean(0)
-        rgb = model.unet(expected, base=expected[:, :3]).permute(0, 2, 3, 1).clamp(0, 1)
+        rgb = model.shade(expected).permute(0, 2, 3, 1).clamp(0, 1)
     assert torch.equal(cond1, draws[0])
     assert torch.allclose(cond3, expected, atol=1e-6) and not torch.allclose(cond3, cond1, atol=1e-3)
     assert torch.allclose(avg, rgb, atol=1e-6) and not torch.allclose(avg, one, atol=1e-3)

@@ -9,6 +9,7 @@ from nsplat.config import ConfigError, from_dict, require, require_fields, to_di
 from nsplat.engine import LogConfig, op_seed
 from nsplat.fitting import FitConfig
 from nsplat.models import PatchGANConfig, UNetConfig
+from nsplat.precision import Precision
 from nsplat.render import RenderConfig
 from nsplat.scene import ATTRIBUTES
 from nsplat.sh import MAX_VIEW_DEGREE, view_channels
@@ -293,6 +294,10 @@ class NeuralConfig:
         lr: U-Net learning rate. betas: its Adam decay rates.
         lr_final: every learning rate decays exponentially to this fraction at the last step.
         ssim_weight: share of D-SSIM in the image loss, ``(1 − s)·L1 + s·D-SSIM`` (0: L1 only).
+        precision: compute precision of the U-Net and the discriminator in training and evaluation:
+            ``float32``, ``bfloat16`` (autocast; the op, losses, weights, optimiser state and checkpoints stay
+            float32) or ``auto`` (bfloat16 where the CPU multiplies it natively, AMX-BF16 or AVX512-BF16,
+            else float32; float32 on CUDA; chosen at start-up and logged: :mod:`nsplat.precision`).
         unet, gan: the networks.
     """
 
@@ -310,6 +315,7 @@ class NeuralConfig:
     betas: tuple[float, float] = (0.5, 0.999)
     lr_final: float = 0.1
     ssim_weight: float = 0.0
+    precision: Precision = "auto"
     unet: UNetConfig = dataclasses.field(default_factory=UNetConfig)
     gan: GanConfig = dataclasses.field(default_factory=GanConfig)
 

@@ -9,6 +9,7 @@ from typing import Callable, Sequence
 import torch
 from torch import nn
 
+from nsplat import precision
 from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.engine import checkpoint_rows
@@ -64,6 +65,9 @@ class NeuralRenderer(nn.Module):
         scene: :class:`SurfelScene` with ``C`` feature channels (``C + R`` with ``neural.view_colour``: the
             last ``R = view_rest`` are SH coefficients, :meth:`point_features`).
         unet: the shader; input channels ``C`` (+1 coverage channel with ``alpha_input``).
+        compute_dtype: the networks' compute precision (``neural.precision`` resolved on the scene's device at
+            construction, :func:`nsplat.precision.resolve`): the U-Net in :meth:`shade` and the discriminator
+            in training run under :func:`nsplat.precision.autocast` of it.
     """
 
     def __init__(self, scene: SurfelScene, cfg: Config) -> None:
@@ -74,6 +78,7 @@ class NeuralRenderer(nn.Module):
         self.alpha_input = n.alpha_input
         self.residual = n.residual
         self.view_rest = cfg.view_rest()
+        self.compute_dtype = precision.resolve(n.precision, scene.means.device)
         self.unet = UNet(self.cond_channels, 3, n.unet)
         if self.residual:
             nn.init.zeros_(self.unet.head.weight)
@@ -140,7 +145,14 @@ class NeuralRenderer(nn.Module):
             cond = cond + self.feature_image(viewmats, Ks, width, height, shifted)
         if draws > 1:
             cond = cond / draws
-        return self.unet(cond, base=cond[:, :3] if self.residual else None), cond
+        return self.shade(cond), cond
+
+    def shade(self, cond: torch.Tensor) -> torch.Tensor:
+        """The U-Net on the feature image ``cond [B,C',H,W]`` (float32) in :attr:`compute_dtype`: RGB
+        ``[B,3,H,W]`` in float32."""
+        with precision.autocast(self.compute_dtype, cond.device.type):
+            rgb = self.unet(cond, base=cond[:, :3] if self.residual else None)
+        return rgb.float()
 
 
 def build_discriminator(cfg: Config, cond_channels: int) -> PatchDiscriminator | None:
@@ -158,7 +170,7 @@ def _eval_unet(model: NeuralRenderer) -> Callable[[torch.Tensor], torch.Tensor]:
         was = model.training
         model.eval()
         try:
-            return model.unet(cond, base=cond[:, :3] if model.residual else None)
+            return model.shade(cond)
         finally:
             model.train(was)
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from nsplat import distributed
+from nsplat import distributed, precision
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
 from nsplat.engine import Engine, Trainables, op_seed, write_json
@@ -65,7 +65,8 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
     share into chunks of ``n.chunk`` views; slot ``j`` is rendered with op seed ``op_seed(seed, "train",
     k·batch + j)`` whichever rank and chunk render it. Each chunk's losses are weighted by its share of
     ``B``, so the gradients summed over chunks and ranks (all-reduced) and the returned scalars are the
-    whole batch's.
+    whole batch's. The U-Net (:meth:`NeuralRenderer.shade`) and the discriminator run in the model's
+    ``compute_dtype`` (``neural.precision``); the losses are computed in float32.
     """
     model, disc = t.modules["model"], t.modules.get("disc")
     idx = torch.randperm(len(train), generator=t.generator)[:n.batch].to(train.images.device)
@@ -78,6 +79,12 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
         rgb, cond = model(train.viewmats[v], train.Ks[v], train.width, train.height,
                           [op_seed(seed, "train", k * n.batch + j) for j in c])
         return rgb, cond, _nchw(train.images[v])
+
+    def judge(cond: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        """The discriminator's patch logits (float32) in the model's compute precision."""
+        with precision.autocast(model.compute_dtype, cond.device.type):
+            logits = disc(cond, image)
+        return logits.float()
 
     sums: dict[str, float] = {}  # Σ over chunks of (chunk's share of B) × (chunk's mean)
 
@@ -94,7 +101,7 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
                 rgb, cond, gt = forward(c)
             kept = (rgb, cond, gt) if len(chunks) == 1 else None
             cd = cond.detach()
-            d_loss = discriminator_loss(disc(cd, gt), disc(cd, rgb.detach()), n.gan.mode)
+            d_loss = discriminator_loss(judge(cd, gt), judge(cd, rgb.detach()), n.gan.mode)
             (w * d_loss).backward()
             add("loss/disc", d_loss.item(), w)
         distributed.all_reduce_grads(t.optimizers["d"])
@@ -103,7 +110,7 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
     for c in chunks:
         w = len(c) / B
         rgb, cond, gt = kept if kept is not None else forward(c)
-        fake = disc(cond, rgb) if use_gan else None
+        fake = judge(cond, rgb) if use_gan else None
         losses = generator_loss(rgb, gt, fake, lambda_l1=n.gan.lambda_l1, adv_weight=n.gan.weight,
                                 ssim_weight=n.ssim_weight, mode=n.gan.mode)
         (w * losses["total"]).backward()
