@@ -41,7 +41,7 @@ from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
-                           config_differences, lock_holder)
+                           config_differences, finished_at, lock_holder, mark_finished)
 from nsplat.tasks import TASKS, get_task
 from nsplat.viewer import commands as viewer_commands
 from nsplat.viewer import live
@@ -194,6 +194,12 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
 
 def _train(args: argparse.Namespace) -> int:
     task, cfg, _ = _configs(args)
+    finished = finished_at(args.run) if args.resume else None
+    if finished is not None:  # every rank reads the same folder: all leave here, before any collective
+        report.results.info("run folder: %s", args.run)
+        report.results.info("the run finished on %s: nothing to resume (its outputs are unchanged; `eval` or "
+                            "`render` it, or start a new run)", finished)
+        return 0
     seed = int(getattr(cfg, "seed", 0))
     device = distributed.local_device(_device(args.device))
     if not distributed.launched():
@@ -236,6 +242,8 @@ def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device:
         report.results.info("run folder: %s", args.run)
         with live.session(args.viewer) if main else contextlib.nullcontext():
             task.run(cfg, ctx)
+        if main:
+            mark_finished(args.run)
     except USER_ERRORS:
         if main:
             failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet

@@ -114,6 +114,7 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     (cut / "checkpoints" / "ckpt-00000004.pt").unlink()
     (cut / "checkpoints" / "latest").write_text("ckpt-00000002.pt")
     shutil.rmtree(cut / "eval_test")
+    (cut / "finished.json").unlink()  # a killed run never finished
     assert main(["--run", str(cut), "--resume"]) == 0
     a = load_checkpoint(full)
     b = load_checkpoint(cut)
