@@ -42,8 +42,9 @@ class CaptureConfig:
         downscale: photos at ``1/downscale`` (read from ``<images>_<downscale>/`` when it exists).
         holdout_every: every n-th image by name is the test split (8: the Mip-NeRF 360 / 3DGS convention).
         val_every: of the other images, every n-th from the (n/2)-th is the validation split (not trained on).
-        images, sparse, masks: folders relative to ``data.root``: photos, model (``null``: ``sparse/0`` or
-            ``sparse``), coverage masks (``null``: none; needed only by ``geometry.init: hull``).
+        images, sparse, masks: folders relative to ``data.root``: photos, model (``null``: of the models in
+            ``sparse/<k>``, the one with the most registered images, or ``sparse`` itself), coverage masks
+            (``null``: none; needed only by ``geometry.init: hull``).
         normalize: move the world so the cameras' common look-at point is the origin and scale it so their
             median distance to it is ``radius`` (the units the learning rates were set in).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
