@@ -17,6 +17,7 @@ import yaml
 from nsplat.checkpoint import load_checkpoint
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
+from nsplat.eval_protocol import read_per_view_csv
 from nsplat.metrics_image import lpips_status
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
@@ -136,9 +137,15 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     per_view = json.loads((full / "eval_test" / "per_view.json").read_text())["views"]
     assert m["split"] == "test" and m["views"] == 2 == len(per_view)
     assert 0 < m["psnr"]["mean"] < 60 and m["psnr"]["std"] >= 0 and 0 < m["ssim"]["mean"] <= 1
-    ok, msg = lpips_status()
-    assert m["lpips"]["backbone"] == "alex" if ok else m["lpips"] == msg
+    assert m["protocol"] == "standard"
+    for net in ("vgg", "alex"):
+        ok, msg = lpips_status(net)
+        assert set(m["lpips"][net]) == {"mean", "std"} if ok else m["lpips"][net] == msg
     assert m["psnr"]["mean"] == pytest.approx(sum(v["psnr"] for v in per_view) / 2)
+    table = read_per_view_csv(full / "eval_test" / "per_view.csv")
+    assert [r["name"] for r in table] == [v["name"] for v in per_view]
+    assert [r["psnr"] for r in table] == [v["psnr"] for v in per_view]
+    assert iio.imread(full / "eval_test" / "sheet.png").shape[2] in (3, 4)
     for v in per_view:
         stem = Path(v["name"]).name
         assert iio.imread(full / "eval_test" / f"{stem}.png").shape == (24, 24, 3)
@@ -212,7 +219,7 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
     """The point-only model is evaluated like the U-Net's feature images: ``eval_geometry.json`` holds the PSNR
     of the mean of ``eval.draws`` surfel renders (``render_views(draws=…)``: draw j with the seeds shifted by
     j·DRAW_STRIDE), which has less sampling noise than one draw; ``draws`` < 1 is an error naming it."""
-    from nsplat.metrics_image import psnr
+    from nsplat.metrics_image import psnr, quantise
     from nsplat.render import DRAW_STRIDE, render_views
     from nsplat.tasks.neural.evaluation import evaluate_geometry
 
@@ -231,7 +238,8 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
                            background=views.background, shading="none", draws=3)
     assert torch.allclose(avg, torch.stack(one).mean(0), atol=1e-6) and not torch.allclose(avg, one[0], atol=1e-3)
     out = evaluate_geometry(cfg, ctx, {"train": views}, seed=7)
-    expected = psnr(avg.clamp(0, 1), views.images).mean()
+    expected = psnr(quantise(avg), quantise(views.images)).mean()  # the standard protocol: 8-bit images
+    assert out["train"]["protocol"] == "standard"
     assert out["train"]["psnr"]["mean"] == pytest.approx(float(expected), abs=1e-4)
     with pytest.raises(ValueError, match="draws"):
         render_views(scene, views.viewmats, views.Ks, views.width, views.height, cfg.eval_render(), draws=0)

@@ -341,7 +341,13 @@ class EvalConfig:
 
     Attributes:
         split: held-out split evaluated at the end of training (and by ``eval`` by default).
-        images: write rendered/GT PNGs. orbit_frames, fps: the ``render`` command's orbit video.
+        protocol: how held-out views are scored (:mod:`nsplat.eval_protocol`): ``standard`` (the published
+            tables: render and ground truth quantised to 8 bits, PSNR, SSIM over zero-padded images as in 3D
+            Gaussian splatting, LPIPS VGG and AlexNet when installed) or ``nsplat`` (float images, SSIM over
+            the valid region). Training-time validation (``history.json``) stays on float images.
+        images: write rendered/GT PNGs. sheet_views: views on the comparison sheet ``sheet.png`` (ground
+            truth | render | error heat map; evenly spread; 0: no sheet).
+        orbit_frames, fps: the ``render`` command's frames (orbit and smooth paths) and frame rate.
         val_views: views per split in the training-time validation (``log.validate``; ``history.json``).
         render: overrides of the top-level ``render`` section for every evaluation render (held-out
             metrics, training-time validation, the orbit video), e.g. ``eval.render: {samples: 80}``;
@@ -355,8 +361,10 @@ class EvalConfig:
     """
 
     split: Literal["train", "val", "test"] = "test"
+    protocol: Literal["standard", "nsplat"] = "standard"
     val_views: int = 8
     images: bool = True
+    sheet_views: int = 8
     orbit_frames: int = 60
     fps: int = 20
     render: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -364,7 +372,7 @@ class EvalConfig:
     draws: int = 1
 
     def __post_init__(self) -> None:
-        require_fields(self, val_views=">=1", orbit_frames=">=1", fps=">=1", draws=">=1")
+        require_fields(self, val_views=">=1", sheet_views=">=0", orbit_frames=">=1", fps=">=1", draws=">=1")
 
 
 @dataclasses.dataclass

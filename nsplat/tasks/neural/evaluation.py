@@ -15,7 +15,9 @@ import torch
 from nsplat.cameras import look_at
 from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
-from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhouette_band, ssim
+from nsplat.comparison_sheet import write_sheet
+from nsplat.eval_protocol import protocol_images, score_views, summary, summary_text, write_per_view_csv
+from nsplat.metrics_image import error_share, silhouette_band
 from nsplat.render import RenderConfig, render_views
 from nsplat.report import results
 from nsplat.runctx import RunContext
@@ -75,44 +77,41 @@ def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int
 
 def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,
                    seed: int) -> dict:
-    """PSNR/SSIM (LPIPS if available offline) per view of ``views`` (split ``split``) on the configured
-    background, rendered with op seed ``seed``.
+    """Score every view of ``views`` (split ``split``) under ``eval.protocol`` (:mod:`nsplat.eval_protocol`),
+    rendered on the configured background with op seed ``seed``.
 
-    Writes ``eval_<split>/metrics.json`` (mean ± std), ``per_view.json`` and ``<name>.png`` /
-    ``<name>_gt.png`` per view; logs the means. Returns the metrics dict.
+    Writes to ``eval_<split>/``: ``metrics.json`` (the protocol, mean ± std per metric), ``per_view.csv``
+    and ``per_view.json`` (one row per view), ``sheet.png`` (ground truth | render | error heat map of
+    ``eval.sheet_views`` views) and, with ``eval.images``, ``<name>.png`` / ``<name>_gt.png`` per view;
+    reports the means on stdout. Returns the metrics dict.
     """
     t0 = time.perf_counter()
     rgb, _ = render_split(model, views, seed=seed, render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
     seconds = time.perf_counter() - t0
-    p, s = psnr(rgb, views.images), ssim(rgb, views.images)
-    ok, lp_msg = lpips_status()
-    lp = lpips(rgb, views.images) if ok else None
+    scores = score_views(rgb, views.images, cfg.eval.protocol)
     out_dir = ctx.run_dir / f"eval_{split}"
     out_dir.mkdir(parents=True, exist_ok=True)
-    per_view = []
-    for i, name in enumerate(views.names):
-        stem = Path(name).name  # a photo keeps no second extension: im_000.png → im_000.png
-        if Path(stem).suffix.lower() in IMAGE_SUFFIXES:
-            stem = Path(stem).stem
-        row = {"name": name, "psnr": float(p[i]), "ssim": float(s[i])}
-        if lp is not None:
-            row["lpips"] = float(lp[i])
-        per_view.append(row)
-        if cfg.eval.images:
+    rows = [{"name": name, **{k: float(v[i]) for k, v in scores.per_view.items()}} for i, name in enumerate(views.names)]
+    if cfg.eval.images:
+        for i, name in enumerate(views.names):
+            stem = Path(name).name  # a photo keeps no second extension: im_000.png → im_000.png
+            if Path(stem).suffix.lower() in IMAGE_SUFFIXES:
+                stem = Path(stem).stem
             iio.imwrite(out_dir / f"{stem}.png", _png(rgb[i]))
             iio.imwrite(out_dir / f"{stem}_gt.png", _png(views.images[i]))
+    if cfg.eval.sheet_views:
+        shown = protocol_images(rgb, views.images, cfg.eval.protocol)
+        write_sheet(out_dir / "sheet.png", views.names, shown[1], shown[0], scores.per_view["psnr"],
+                    cfg.eval.sheet_views)
     metrics = {"split": split, "views": len(views), "resolution": [views.width, views.height],
                "background": list(cfg.data.background), "renderer": cfg.eval_render().renderer,
-               "draws": cfg.eval.draws, "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
-               "silhouette_band": _band(rgb, views),
-               "lpips": _stats(lp) | {"backbone": "alex"} if lp is not None else lp_msg,
-               "render_seconds": seconds}
+               "draws": cfg.eval.draws, "points": model.scene.num_points, **summary(scores),
+               "silhouette_band": _band(rgb, views), "render_seconds": seconds}
     write_json(out_dir / "metrics.json", metrics)
-    write_json(out_dir / "per_view.json", {"views": per_view})
-    results.info("held-out %s (%d views, %dx%d): PSNR %.2f ± %.2f dB, SSIM %.4f ± %.4f, LPIPS %s", split, len(views),
-             views.width, views.height, metrics["psnr"]["mean"], metrics["psnr"]["std"], metrics["ssim"]["mean"],
-             metrics["ssim"]["std"], metrics["lpips"] if isinstance(metrics["lpips"], str)
-             else f"{metrics['lpips']['mean']:.4f}")
+    write_json(out_dir / "per_view.json", {"protocol": scores.protocol, "views": rows})
+    write_per_view_csv(out_dir / "per_view.csv", views.names, scores)
+    results.info("held-out %s (%d views, %dx%d, %s protocol): %s", split, len(views), views.width, views.height,
+                 scores.protocol, summary_text(scores))
     log.info("metrics written to %s", out_dir / "metrics.json")
     return metrics
 
@@ -121,8 +120,8 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
 def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews], seed: int) -> dict:
     """Stage 1 alone, the point-based baseline the U-Net must beat: the run's ``geometry.ply`` (RGB
     surfels) rendered by the op (evaluation settings, the mean of ``eval.draws`` draws like the U-Net's
-    feature images) into each split of ``splits``; PSNR/SSIM written to ``eval_geometry.json`` and returned
-    as ``{split: {psnr, ssim}}``."""
+    feature images) into each split of ``splits``, scored under ``eval.protocol``; written to
+    ``eval_geometry.json`` and returned as ``{"points": N, split: {protocol, psnr, ssim, lpips}}``."""
     scene = SurfelScene.load_ply(ctx.run_dir / "geometry.ply", geometry_scene_config(cfg), device=ctx.device)
     out: dict = {"points": scene.num_points}
     for split, views in splits.items():
@@ -131,8 +130,9 @@ def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews
                              background=views.background, draws=cfg.eval.draws)
                 for s in range(0, len(views), 4)]
         rgb = torch.cat(rgbs).clamp(0, 1)
-        out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}
-        results.info("stage 1 alone, %s: PSNR %.2f dB", split, out[split]["psnr"]["mean"])
+        scores = score_views(rgb, views.images, cfg.eval.protocol)
+        out[split] = summary(scores)
+        results.info("stage 1 alone, %s (%s protocol): %s", split, scores.protocol, summary_text(scores))
     write_json(ctx.run_dir / "eval_geometry.json", out)
     return out
 
