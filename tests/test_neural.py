@@ -13,11 +13,13 @@ import imageio.v3 as iio
 import pytest
 import torch
 import yaml
+from plyfile import PlyData
 
 from nsplat.checkpoint import load_checkpoint
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
 from nsplat.eval_protocol import read_per_view_csv
+from nsplat.gaussian_ply import read_gaussian_ply
 from nsplat.metrics_image import lpips_status
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
@@ -158,6 +160,11 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     hist = json.loads((full / "history.json").read_text())["history"]
     assert [r["step"] for r in hist] == [2, 4] and all("train_psnr" in r and "val_psnr" in r for r in hist)
     assert any((full / "tb").iterdir()) and (full / "geometry.ply").is_file()
+
+    # the 3DGS export of a neural run holds stage 1's surfels and colour (the U-Net is not in the file)
+    assert main(["export", "--run", str(full), "--format", "3dgs"]) == 0
+    gs = read_gaussian_ply(full / "export" / "point_cloud.ply")
+    assert gs["means"].shape[0] == PlyData.read(str(full / "geometry.ply"))["vertex"].count
 
     assert main(["render", "--run", str(full)]) == 0
     frames = list(imageio.get_reader(full / "orbit.mp4").iter_data())

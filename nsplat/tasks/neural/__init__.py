@@ -33,18 +33,18 @@ from nsplat import distributed
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
 from nsplat.engine import Engine, checkpoint_rows, latest_payload, write_json
-from nsplat.runctx import RunContext
+from nsplat.runctx import RunContext, RunFolderError
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_orbit
-from nsplat.tasks.neural.geometry import fit_geometry
+from nsplat.tasks.neural.geometry import fit_geometry, geometry_scene_config
 from nsplat.tasks.neural.model import NeuralRenderer, load_model, neural_scene_config, neural_scene_from, neural_view
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
-from nsplat.view_model import ViewModel, cameras_of
+from nsplat.view_model import ViewModel, cameras_of, surfel_view
 
-__all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "render", "run", "view"]
+__all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "point_view", "render", "run", "view"]
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,18 @@ def render(cfg: Config, ctx: RunContext) -> Path:
     """Write ``orbit.mp4``: the trained model along a circle of cameras around the scene."""
     cfg = with_capture_render(cfg)
     return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), cfg.eval_seed())
+
+
+def point_view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The point-only model for exports that store a colour per point (``export --format 3dgs``): stage 1's
+    surfels (``geometry.ply``) with their RGB or view-dependent SH colour, without cameras."""
+    path = ctx.run_dir / "geometry.ply"
+    if not path.is_file():
+        raise RunFolderError(f"--run {ctx.run_dir}: no geometry.ply yet (stage 1 has not finished)")
+    scene = SurfelScene.load_ply(path, geometry_scene_config(cfg), device=ctx.device)
+    background = torch.tensor(cfg.data.background, dtype=scene.means.dtype, device=ctx.device)
+    return surfel_view(scene, None, shading=cfg.geometry.optim.shading, background=background,
+                       render_cfg=cfg.eval_render(), task="neural", seed=cfg.eval_seed())
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:

@@ -181,10 +181,11 @@ class GeometryConfig:
 
     Attributes:
         init: ``hull`` (visual hull of the training silhouettes), ``sfm`` (the SfM points of a COLMAP
-            capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a PLY written by
-            :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
-            run's ``geometry.ply``) or ``random`` (``max_points`` points uniform in ``bbox``, random
-            normals, grey: a start without silhouettes or SfM points).
+            capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a previous run's ``geometry.ply``
+            with this stage's attributes, a 3D Gaussian splatting PLY such as ``export --format 3dgs``
+            writes, or any point cloud with ``x y z`` and optional normals and colours:
+            :func:`nsplat.tasks.neural.geometry._ply_scene`) or ``random`` (``max_points`` points uniform
+            in ``bbox``, random normals, grey: a start without silhouettes or SfM points).
         ply: path of that PLY (relative: to the repo root).
         bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
         grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
