@@ -125,9 +125,9 @@ BUILDERS: dict[str, Callable[[Any], tuple[Models, list[str]]]] = {
 }
 
 
-#: ``data.root`` of a capture config that leaves it to the command line (``configs/colmap.yaml``): the
-#: inventory allocates with placeholder sizes and reads no data.
-CAPTURE_PLACEHOLDER = "<your COLMAP folder>"
+#: ``data.root`` of a capture config that leaves it to the command line (``configs/colmap.yaml``,
+#: ``configs/transforms.yaml``): the inventory allocates with placeholder sizes and reads no data.
+CAPTURE_PLACEHOLDER = "<your capture folder>"
 
 
 def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, Any, Models, list[str]]:
@@ -137,7 +137,7 @@ def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, A
     overrides = list(overrides or [])
     data = raw.get("data") or {}
     given = any(o.startswith("data.root=") for o in overrides)
-    if data.get("source") == "colmap" and not data.get("root") and not given:
+    if data.get("source") in ("colmap", "transforms") and not data.get("root") and not given:
         overrides.append(f"data.root={CAPTURE_PLACEHOLDER}")  # given on the command line; never read here
     cfg = load_config(task.Config, raw, overrides)
     if raw["task"] not in BUILDERS:

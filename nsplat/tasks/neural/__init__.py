@@ -18,8 +18,9 @@ Both stages run on the engine (:mod:`nsplat.engine`), data-parallel under torchr
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
-and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs),
-``eval_geometry.json`` (stage 1 alone on val and the held-out split) and ``orbit.mp4``.
+and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.csv`` and ``.json``, ``sheet.png``, PNGs),
+``eval_geometry.json`` (stage 1 alone on val and the held-out split), ``finished.json`` and the ``render``
+command's videos (``orbit.mp4``, ``test.mp4``, ``train-smooth_depth.mp4``, ...).
 """
 from __future__ import annotations
 
@@ -38,10 +39,11 @@ from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_orbit
+from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_path_videos
 from nsplat.tasks.neural.geometry import fit_geometry, geometry_scene_config
 from nsplat.tasks.neural.model import NeuralRenderer, load_model, neural_scene_config, neural_scene_from, neural_view
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
+from nsplat.video import RenderRequest
 from nsplat.view_model import ViewModel, cameras_of, surfel_view
 
 __all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "point_view", "render", "run", "view"]
@@ -50,6 +52,8 @@ log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
+#: ``render`` takes a :class:`nsplat.video.RenderRequest` (camera path, outputs, fps, frames, resolution).
+RENDER_PATHS = True
 
 
 def run(cfg: Config, ctx: RunContext) -> dict:
@@ -108,10 +112,11 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRen
     return evaluate_split(cfg, ctx, model, load_views(cfg, split, ctx.device), split, cfg.eval_seed())
 
 
-def render(cfg: Config, ctx: RunContext) -> Path:
-    """Write ``orbit.mp4``: the trained model along a circle of cameras around the scene."""
+def render(cfg: Config, ctx: RunContext, request: RenderRequest | None = None) -> list[Path]:
+    """Videos of the trained model along a camera path, one per output (default: ``orbit.mp4``, RGB along a
+    circle of cameras around the scene; :class:`nsplat.video.RenderRequest`, :func:`write_path_videos`)."""
     cfg = with_capture_render(cfg)
-    return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), cfg.eval_seed())
+    return write_path_videos(cfg, ctx, load_model(cfg, ctx), request or RenderRequest())
 
 
 def point_view(cfg: Config, ctx: RunContext) -> ViewModel:

@@ -18,7 +18,7 @@ from nsplat import render as gateway
 from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError
 from nsplat.data.paths import resolve
-from nsplat.data.pointclouds import check_ply_header, read_point_ply
+from nsplat.data.pointclouds import PlainCloud, check_ply_header, read_point_ply
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import hull_points
 from nsplat.engine import write_json
@@ -44,20 +44,49 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
                        feature_activation="identity" if g.optim.shading == "sh" else "sigmoid")
 
 
+def start_kind(cfg: Config) -> str:
+    """What ``geometry.init`` starts from, ``auto`` resolved (see its doc): ``hull``, ``ply``, ``random``, ``sfm``,
+    ``capture_ply`` (the point cloud a ``transforms.json`` names) or ``view_fill`` (random points in the
+    training cameras' common view)."""
+    g = cfg.geometry
+    if g.init != "auto":
+        return g.init
+    if cfg.data.source == "colmap":
+        return "sfm"
+    if cfg.data.source == "transforms":
+        if prepare(cfg).ply is not None:
+            return "capture_ply"
+        return "hull" if cfg.data.capture.masks else "view_fill"
+    return "hull"
+
+
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
-    """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels, the filtered SfM
-    points, a PLY, or random points in the box; with ``geometry.background.model: sphere`` the background surfels are appended.
-    Opacities start at ``geometry.init_opacity``, the SfM fill's at ``geometry.sfm.fill_opacity``."""
+    """Stage 1's initial surfels (``geometry.init``, :func:`start_kind`): the visual hull's surface voxels, the
+    filtered SfM points, a PLY, a capture's point cloud, or random points in the box or in the cameras' common
+    view; with ``geometry.background.model: sphere`` the background surfels are appended. Opacities start at
+    ``geometry.init_opacity``, the random fills' (SfM and common view) at ``geometry.sfm.fill_opacity``."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
-    if g.init == "ply":
+    kind = start_kind(cfg)
+    if kind == "ply":
         return _ply_scene(cfg, resolve(g.ply or ""), device, seed)
     spacing = None
-    if g.init == "sfm":
+    if kind == "sfm":
         means, normals, colours, spacing = _sfm_points(cfg, train, seed)
-    elif g.init == "random":
+    elif kind == "random":
         means, normals, colours = _random_points(g.bbox, g.max_points, seed)
+    elif kind == "capture_ply":
+        means, normals, colours = _capture_cloud(cfg, seed)
+    elif kind == "view_fill":
+        lo, hi = torch.tensor(g.bbox[:3], dtype=torch.float64), torch.tensor(g.bbox[3:], dtype=torch.float64)
+        try:
+            means, normals, colours = fill_points(lo, hi, train.to("cpu"), g.max_points, g.sfm.fill_seen,
+                                                  torch.Generator().manual_seed(seed))
+        except ValueError as exc:
+            raise ConfigError(f"geometry.init: auto: {exc}") from exc
+        log.info("common-view start: %d random points in the box %s seen by %.0f%% of the training views",
+                 g.max_points, list(g.bbox), 100 * g.sfm.fill_seen)
     else:
         hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold,
                          dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
@@ -65,8 +94,10 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         means, normals, colours = hp.means, hp.normals, hp.colours
     scales = None
     opacities = torch.full((means.shape[0],), g.init_opacity)
-    if g.init == "sfm" and g.sfm.fill > 0:                      # the fill rows end the SfM part
+    if kind == "sfm" and g.sfm.fill > 0:                        # the fill rows end the SfM part
         opacities[means.shape[0] - g.sfm.fill:] = g.sfm.fill_opacity
+    if kind == "view_fill":
+        opacities[:] = g.sfm.fill_opacity
     if g.background.model == "sphere":
         centre, radius = background_sphere(cfg)
         bg = sphere_background(train.to("cpu"), centre, radius, g.background.points)
@@ -121,25 +152,45 @@ def _ply_scene(cfg: Config, path: Path, device: torch.device, seed: int) -> Surf
             features = features.clamp(0.0, 1.0)
         log.info("3DGS PLY: %d of %d Gaussians as surfels (file SH degree %d, %d colour channels)", len(keep),
                  gs["means"].shape[0], gs["degree"], channels)
-        return SurfelScene.from_points(scfg, gs["means"][keep].float().to(device), gs["normals"][keep].float().to(device),
-                                       scales=gs["scales"][keep].clamp_min(1e-9).float().to(device),
-                                       opacities=gs["opacities"][keep].float().to(device) if g.opacity is None else None,
+        rows = {k: gs[k][keep].float().to(device) for k in ("means", "normals", "scales", "opacities")}
+        return SurfelScene.from_points(scfg, rows["means"], rows["normals"], scales=rows["scales"].clamp_min(1e-9),
+                                       opacities=rows["opacities"] if g.opacity is None else None,
                                        features=features.float().to(device))
-    cloud = read_point_ply(path)
+    means, normals, colours = _cloud_points(cfg, read_point_ply(path), gen, path)
+    features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)
+    return SurfelScene.from_points(scfg, means.to(device), normals.to(device),
+                                   opacities=torch.full((means.shape[0],), g.init_opacity, device=device)
+                                   if g.opacity is None else None,
+                                   features=features.to(device), scale_factor=g.scale_factor)
+
+
+def _cloud_points(cfg: Config, cloud: PlainCloud, gen: torch.Generator, where: Path) -> tuple[torch.Tensor, ...]:
+    """``(means, normals, colours)`` float32 of at most ``geometry.max_points`` points of ``cloud`` (read from
+    ``where``; a random subset drawn with ``gen``): its normals or plane fits of the ``geometry.sfm.k``
+    nearest neighbours, its colours (clamped to [0.02, 0.98]) or grey."""
+    g = cfg.geometry
     keep = _subset(cloud.points.shape[0], g.max_points, gen)
     means = cloud.points[keep].float()
+    if cloud.normals is None and len(keep) < 3:
+        raise DataError(f"{where}: a point cloud without normals needs at least 3 points for plane fits, "
+                        f"got {len(keep)}")
     normals = (torch.from_numpy(plane_normals(means.double().numpy(), min(g.sfm.k, len(keep) - 1))).float()
                if cloud.normals is None else cloud.normals[keep].float())
     colours = torch.full_like(means, 0.5) if cloud.colours is None else cloud.colours[keep].float()
-    log.info("point cloud PLY: %d of %d points (normals %s, colours %s)", len(keep), cloud.points.shape[0],
+    log.info("point cloud: %d of %d points (normals %s, colours %s)", len(keep), cloud.points.shape[0],
              "from the file" if cloud.normals is not None else "from plane fits",
              "from the file" if cloud.colours is not None else "grey")
-    colours = colours.clamp(0.02, 0.98)
-    features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)
-    return SurfelScene.from_points(scfg, means.to(device), normals.to(device),
-                                   opacities=torch.full((len(keep),), g.init_opacity, device=device)
-                                   if g.opacity is None else None,
-                                   features=features.to(device), scale_factor=g.scale_factor)
+    return means, normals, colours.clamp(0.02, 0.98)
+
+
+def _capture_cloud(cfg: Config, seed: int) -> tuple[torch.Tensor, ...]:
+    """``(means, normals, colours)`` of the point cloud the capture's ``transforms.json`` names
+    (``ply_file_path``, in the file's world), moved into the training frame (:func:`_cloud_points`)."""
+    prep = prepare(cfg)
+    cloud = read_point_ply(prep.ply)
+    cloud = dataclasses.replace(cloud, points=prep.scale * (cloud.points - prep.centre))
+    log.info("start: the point cloud of %s", prep.ply)
+    return _cloud_points(cfg, cloud, torch.Generator().manual_seed(seed), prep.ply)
 
 
 def _subset(count: int, limit: int, gen: torch.Generator) -> torch.Tensor:
