@@ -108,7 +108,9 @@ def build_neural(cfg: Any) -> tuple[Models, list[str]]:
     point-only model) stage 1's scene alone, as the task builds."""
     stage1 = fitting.build(_placeholder_scene(geometry_scene_config(cfg)), cfg.geometry.optim).modules
     colour = f"SH degree {cfg.geometry.sh_degree} surfels" if cfg.geometry.optim.shading == "sh" else "RGB surfels"
-    points = f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"
+    g = cfg.geometry
+    sphere = " plus the background sphere's" if g.background.model == "sphere" else ""
+    points = f"N = the points geometry.init: {g.init} starts from (at most geometry.max_points = {g.max_points}){sphere}"
     if cfg.neural.steps == 0:
         return {"stage1_scene": stage1["scene"]}, [f"stage 1 (geometry): {colour}; no stage 2 (neural.steps: 0: "
                                                     "the surfels are the model)", points]
