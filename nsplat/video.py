@@ -38,7 +38,7 @@ class RenderRequest:
 
     Attributes:
         path: ``orbit``, ``test`` (the held-out views in order), ``train-smooth`` (a smooth path through the
-            training cameras) or a nerfstudio ``camera_path.json`` file.
+            training cameras) or a nerfstudio ``camera_path.json`` file (relative: to the current folder).
         outputs: any of ``rgb``, ``depth``, ``normal``, ``alpha``; one video each.
         fps: frame rate (``None``: the camera path file's, else the config's).
         frames: frames of ``orbit`` and ``train-smooth`` (``None``: the config's).

@@ -129,7 +129,7 @@ def _frames(path: Path) -> list[np.ndarray]:
     return list(imageio.get_reader(path).iter_data())
 
 
-def test_render_writes_every_path_and_output(tmp_path, capsys):
+def test_render_writes_every_path_and_output(tmp_path, capsys, monkeypatch):
     cfg_path = tmp_path / "tiny.yaml"
     cfg_path.write_text(yaml.safe_dump(_tiny(tmp_path / "cache", steps=2)))
     run = tmp_path / "run"
@@ -142,8 +142,9 @@ def test_render_writes_every_path_and_output(tmp_path, capsys):
     assert main(["render", "--run", str(run), "--path", "train-smooth", "--frames", "7"]) == 0
     assert len(_frames(run / "train-smooth.mp4")) == 7
     c2ws = [torch.linalg.inv(v).numpy() @ np.diag([1.0, -1.0, -1.0, 1.0]) for v in _arc(3)]
-    path = _camera_path(tmp_path / "fly.json", c2ws)
-    assert main(["render", "--run", str(run), "--path", str(path), "--outputs", "rgb"]) == 0
+    _camera_path(tmp_path / "fly.json", c2ws)
+    monkeypatch.chdir(tmp_path)  # a relative camera path file is found from the current folder
+    assert main(["render", "--run", str(run), "--path", "fly.json", "--outputs", "rgb"]) == 0
     frames = _frames(run / "fly.mp4")
     assert len(frames) == 3 and frames[0].shape == (30, 40, 3)
     out = capsys.readouterr().out

@@ -24,6 +24,7 @@ command's videos (``orbit.mp4``, ``test.mp4``, ``train-smooth_depth.mp4``, ...).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_path_videos
 from nsplat.tasks.neural.geometry import fit_geometry, geometry_scene_config
-from nsplat.tasks.neural.model import NeuralRenderer, load_model, neural_scene_config, neural_scene_from, neural_view
+from nsplat.tasks.neural.model import Renderer, load_model, neural_scene_config, neural_scene_from, neural_view
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
 from nsplat.video import RenderRequest
 from nsplat.view_model import ViewModel, cameras_of, surfel_view
@@ -93,18 +94,21 @@ def run(cfg: Config, ctx: RunContext) -> dict:
 
 
 def _point_only_result(cfg: Config, ctx: RunContext, val: PosedViews | None, timing: dict) -> dict:
-    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics are the run's."""
+    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics (``eval_<split>/``, as a
+    stage-2 run writes them, and ``eval_geometry.json`` with the validation split) are the run's."""
     if not distributed.is_main():
         return {}
     splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
               cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
-    out = evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    metrics = evaluate(cfg, ctx, cfg.eval.split)
     write_json(ctx.run_dir / "timing.json", {**timing, "train_total_s": timing["geometry_s"], "neural_steps_s": 0.0})
-    return {"split": cfg.eval.split, "points": out["points"], **out[cfg.eval.split]}
+    return metrics
 
 
-def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRenderer | None = None) -> dict:
-    """Held-out metrics of ``split`` (:func:`nsplat.tasks.neural.evaluation.evaluate_split`)."""
+def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: Renderer | None = None) -> dict:
+    """Held-out metrics of ``split`` (:func:`nsplat.tasks.neural.evaluation.evaluate_split`) of ``model``, by
+    default the run's (:func:`~nsplat.tasks.neural.model.load_model`: stage 2, or stage 1 of a point-only run)."""
     if split not in ("train", "val", "test"):
         raise ConfigError(f"--split: expected train, val or test, got {split!r}")
     cfg = with_capture_render(cfg)
@@ -132,7 +136,11 @@ def point_view(cfg: Config, ctx: RunContext) -> ViewModel:
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:
-    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras."""
-    model = load_model(cfg, ctx).eval()
+    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras; for a
+    point-only run (``neural.steps: 0``) stage 1's surfels (:func:`point_view`)."""
+    model = point_view(cfg, ctx) if cfg.neural.steps == 0 else load_model(cfg, ctx).eval()
     train = load_views(cfg, "train", ctx.device)
-    return neural_view(model, cameras_of(train.images, train.viewmats, train.Ks), seed=cfg.eval_seed())
+    cameras = cameras_of(train.images, train.viewmats, train.Ks)
+    if isinstance(model, ViewModel):
+        return dataclasses.replace(model, cameras=cameras)
+    return neural_view(model, cameras, seed=cfg.eval_seed())

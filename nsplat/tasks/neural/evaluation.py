@@ -30,7 +30,7 @@ from nsplat.tasks.neural.capture import to_training_frame
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.geometry import geometry_scene_config
-from nsplat.tasks.neural.model import NeuralRenderer
+from nsplat.tasks.neural.model import Renderer
 from nsplat.video import RenderRequest, depth_picture, normal_picture, to_uint8, write_video
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ def _band(rgb: torch.Tensor, views: PosedViews, width: int = 1) -> dict | None:
 
 
 @torch.no_grad()
-def render_cameras(model: NeuralRenderer, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+def render_cameras(model: Renderer, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                    seed: int, batch: int = 4, render_cfg: RenderConfig | None = None, draws: int = 1,
                    progress: tqdm | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of the cameras ``viewmats [B,4,4]``,
@@ -82,13 +82,13 @@ def render_cameras(model: NeuralRenderer, viewmats: torch.Tensor, Ks: torch.Tens
     return torch.cat(rgbs).clamp(0, 1), torch.cat(conds)
 
 
-def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4,
+def render_split(model: Renderer, views: PosedViews, seed: int, batch: int = 4,
                  render_cfg: RenderConfig | None = None, draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_cameras` of all ``views``."""
     return render_cameras(model, views.viewmats, views.Ks, views.width, views.height, seed, batch, render_cfg, draws)
 
 
-def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,
+def evaluate_split(cfg: Config, ctx: RunContext, model: Renderer, views: PosedViews, split: str,
                    seed: int) -> dict:
     """Score every view of ``views`` (split ``split``) under ``eval.protocol`` (:mod:`nsplat.eval_protocol`),
     rendered on the configured background with op seed ``seed``.
@@ -163,14 +163,14 @@ def path_cameras(cfg: Config, ctx: RunContext, request: RenderRequest) -> Camera
         V = orbit(train.viewmats, frames) if request.path == "orbit" else smooth_path(train.viewmats, frames)[0]
         path = CameraPath(V, train.Ks[:1].expand(frames, 3, 3).contiguous(), train.width, train.height)
     else:
-        path = read_nerfstudio_path(resolve(request.path))
+        path = read_nerfstudio_path(resolve(request.path, base=Path.cwd()))  # a command-line path: from here
         path = dataclasses.replace(path, viewmats=to_training_frame(cfg, path.viewmats))
     path = dataclasses.replace(path, viewmats=path.viewmats.to(ctx.device), Ks=path.Ks.to(ctx.device))
     return path.resized(request.resolution) if request.resolution else path
 
 
 @torch.no_grad()
-def write_path_videos(cfg: Config, ctx: RunContext, model: NeuralRenderer, request: RenderRequest) -> list[Path]:
+def write_path_videos(cfg: Config, ctx: RunContext, model: Renderer, request: RenderRequest) -> list[Path]:
     """Render ``model`` along ``request.path`` (evaluation settings, op seed ``eval_seed() + frame``) and write one
     video per output to the run folder: ``<name>.mp4`` (RGB), ``<name>_depth.mp4``, ``<name>_normal.mp4``,
     ``<name>_alpha.mp4`` (:mod:`nsplat.video`). Returns the written paths."""

@@ -1,6 +1,7 @@
 """Stage 1 of the neural task: the initial surfels (visual hull of the training silhouettes, the SfM points of
-a COLMAP capture, a PLY of this project, of 3D Gaussian splatting or of a scanner, or random points in the bounding box, plus, for unmasked photos, the background
-sphere of :mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
+a COLMAP capture, a PLY of this project, of 3D Gaussian splatting or of a scanner, or random points in the
+bounding box or the cameras' common view, plus, for unmasked photos, the background sphere of
+:mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
 from __future__ import annotations
 
 import dataclasses
