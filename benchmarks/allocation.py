@@ -108,7 +108,9 @@ def build_neural(cfg: Any) -> tuple[Models, list[str]]:
     point-only model) stage 1's scene alone, as the task builds."""
     stage1 = fitting.build(_placeholder_scene(geometry_scene_config(cfg)), cfg.geometry.optim).modules
     colour = f"SH degree {cfg.geometry.sh_degree} surfels" if cfg.geometry.optim.shading == "sh" else "RGB surfels"
-    points = f"N = visual-hull points (at most geometry.max_points = {cfg.geometry.max_points})"
+    g = cfg.geometry
+    sphere = " plus the background sphere's" if g.background.model == "sphere" else ""
+    points = f"N = the points geometry.init: {g.init} starts from (at most geometry.max_points = {g.max_points}){sphere}"
     if cfg.neural.steps == 0:
         return {"stage1_scene": stage1["scene"]}, [f"stage 1 (geometry): {colour}; no stage 2 (neural.steps: 0: "
                                                     "the surfels are the model)", points]
@@ -125,9 +127,9 @@ BUILDERS: dict[str, Callable[[Any], tuple[Models, list[str]]]] = {
 }
 
 
-#: ``data.root`` of a capture config that leaves it to the command line (``configs/colmap.yaml``): the
-#: inventory allocates with placeholder sizes and reads no data.
-CAPTURE_PLACEHOLDER = "<your COLMAP folder>"
+#: ``data.root`` of a capture config that leaves it to the command line (``configs/colmap.yaml``,
+#: ``configs/transforms.yaml``): the inventory allocates with placeholder sizes and reads no data.
+CAPTURE_PLACEHOLDER = "<your capture folder>"
 
 
 def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, Any, Models, list[str]]:
@@ -137,7 +139,7 @@ def build_config(path: Path, overrides: list[str] | None = None) -> tuple[str, A
     overrides = list(overrides or [])
     data = raw.get("data") or {}
     given = any(o.startswith("data.root=") for o in overrides)
-    if data.get("source") == "colmap" and not data.get("root") and not given:
+    if data.get("source") in ("colmap", "transforms") and not data.get("root") and not given:
         overrides.append(f"data.root={CAPTURE_PLACEHOLDER}")  # given on the command line; never read here
     cfg = load_config(task.Config, raw, overrides)
     if raw["task"] not in BUILDERS:

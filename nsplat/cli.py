@@ -6,7 +6,10 @@ Usage::
     python train.py --config configs/lego.yaml geometry.optim.epochs=60 --device cuda
     python train.py --config configs/lego.yaml --run runs/lego --resume
     python train.py eval --run runs/lego --split test
-    python train.py render --run runs/lego
+    python train.py render --run runs/lego               # orbit.mp4
+    python train.py render --run runs/lego --path test --outputs rgb,depth,normal,alpha --fps 10
+    python train.py render --run runs/lego --path train-smooth --frames 240 --resolution 400
+    python train.py render --run runs/lego --path camera_path.json   # nerfstudio's camera path file
     python train.py view --run runs/lego                 # web viewer (viewer.port=…, viewer.render.samples=…)
     python train.py export --run runs/lego --format ply  # or npz
     python train.py data fetch lego --resolution 400     # datasets into $NSPLAT_DATA (nsplat/data/commands.py)
@@ -41,8 +44,9 @@ from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
 from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
-                           config_differences, lock_holder)
+                           config_differences, finished_at, lock_holder, mark_finished)
 from nsplat.tasks import TASKS, get_task
+from nsplat.video import RenderRequest
 from nsplat.viewer import commands as viewer_commands
 from nsplat.viewer import live
 from nsplat.viewer.config import split_viewer_overrides
@@ -51,6 +55,8 @@ DEFAULT_CONFIG = config_dir() / "default.yaml"
 
 
 COMMANDS = ("train", "eval", "render")
+#: Options of the ``render`` command (:class:`nsplat.video.RenderRequest`).
+RENDER_OPTIONS = ("path", "outputs", "fps", "frames", "resolution")
 #: Errors caused by the user's input: reported in one line, exit code 2, no traceback.
 USER_ERRORS = (ConfigError, RunFolderError, DataError, CheckpointError, AllocationError, FileNotFoundError)
 
@@ -91,6 +97,14 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     p.add_argument("--seed", type=int, default=None, help="the config's seed (the override seed=N under its own name)")
     p.add_argument("--split", default="test", help="split for `eval`")
+    p.add_argument("--path", default=None,
+                   help="`render`: camera path: orbit (default), test, train-smooth or a nerfstudio camera_path.json")
+    p.add_argument("--outputs", default=None, help="`render`: comma-separated rgb,depth,normal,alpha (default rgb)")
+    p.add_argument("--fps", type=float, default=None, help="`render`: frame rate (default: the file's or eval.fps)")
+    p.add_argument("--frames", type=int, default=None, help="`render`: frames of orbit and train-smooth "
+                                                             "(default eval.orbit_frames)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="`render`: longest image side in pixels (default: the training images' size)")
     p.add_argument("--dist-timeout", type=float, default=distributed.DEFAULT_TIMEOUT_S, metavar="SECONDS",
                    help="under torchrun: seconds a process waits for the others in a collective before the "
                         "run stops with an error (must exceed rank 0's validation and checkpoint time; "
@@ -105,6 +119,9 @@ def _parse(argv: list[str]) -> argparse.Namespace:
         raise UsageError(f"unexpected argument {bad[0]!r}: overrides are key=value")
     if args.resume and args.overwrite:
         raise UsageError("--resume and --overwrite exclude each other")
+    given = [f"--{k}" for k in RENDER_OPTIONS if getattr(args, k) is not None]
+    if given and command != "render":
+        raise UsageError(f"{given[0]} is an option of `render`")
     if not args.dist_timeout > 0:
         raise UsageError(f"--dist-timeout: expected > 0 seconds, got {args.dist_timeout}")
     return args
@@ -194,6 +211,12 @@ def _configs(args: argparse.Namespace) -> tuple[Any, Any, dict[str, Any] | None]
 
 def _train(args: argparse.Namespace) -> int:
     task, cfg, _ = _configs(args)
+    finished = finished_at(args.run) if args.resume else None
+    if finished is not None:  # every rank reads the same folder: all leave here, before any collective
+        report.results.info("run folder: %s", args.run)
+        report.results.info("the run finished on %s: nothing to resume (its outputs are unchanged; `eval` or "
+                            "`render` it, or start a new run)", finished)
+        return 0
     seed = int(getattr(cfg, "seed", 0))
     device = distributed.local_device(_device(args.device))
     if not distributed.launched():
@@ -236,6 +259,8 @@ def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device:
         report.results.info("run folder: %s", args.run)
         with live.session(args.viewer) if main else contextlib.nullcontext():
             task.run(cfg, ctx)
+        if main:
+            mark_finished(args.run)
     except USER_ERRORS:
         if main:
             failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
@@ -290,6 +315,22 @@ def _post(args: argparse.Namespace) -> int:
         raise ConfigError(f"task {raw['task']!r} has no `{args.command}` command")
     if args.command == "eval":
         fn(cfg, ctx, split=args.split)
+    elif getattr(task, "RENDER_PATHS", False):
+        fn(cfg, ctx, _render_request(args))
+    elif any(getattr(args, k) is not None for k in RENDER_OPTIONS):
+        raise UsageError(f"task {raw['task']!r}: `render` writes the task's own images; "
+                         f"{', '.join('--' + k for k in RENDER_OPTIONS)} apply to the neural task")
     else:
         fn(cfg, ctx)
     return 0
+
+
+def _render_request(args: argparse.Namespace) -> RenderRequest:
+    """The ``render`` command's :class:`RenderRequest` from its options (unset ones: the defaults)."""
+    given = {k: getattr(args, k) for k in RENDER_OPTIONS if getattr(args, k) is not None}
+    if "outputs" in given:
+        given["outputs"] = tuple(o.strip() for o in given["outputs"].split(",") if o.strip())
+    try:
+        return RenderRequest(**given)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None

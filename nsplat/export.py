@@ -1,4 +1,5 @@
-"""Exports of a trained run: a standard point-cloud PLY and an NPZ of the raw tensors.
+"""Exports of a trained run: a standard point-cloud PLY, a 3D Gaussian splatting PLY and an NPZ of the raw
+tensors.
 
 PLY layout (binary little endian, one ``vertex`` element, one row per surfel)::
 
@@ -16,6 +17,11 @@ cloud with normals; the rest are extra properties those tools ignore or list as 
 Note: unlike :meth:`nsplat.scene.SurfelScene.save_ply` (the training-internal layout: log-scales,
 opacity logits, raw features), every value here is op-ready.
 
+3DGS (``--format 3dgs``): 3D Gaussian splatting's ``point_cloud.ply`` layout, which Gaussian-splatting
+viewers open (:mod:`nsplat.gaussian_ply`): every surfel as a flat Gaussian with its colour as spherical
+harmonics. It needs a colour model: the point-only model (RGB or SH colour; Lambert-shaded tasks export their
+albedo); for the neural task, stage 1's surfels and view colour (the U-Net is not in the file).
+
 NPZ: ``means [N,3]``, ``normals [N,3]``, ``scales [N,2]``, ``opacities [N]``, ``features [N,C]``,
 ``colours [N,3]`` (float, [0, 1]), ``background [C]`` and, when known, the training cameras
 ``viewmats [V,4,4]`` (OpenCV world→camera), ``Ks [V,3,3]``, ``image_size [2]`` (width, height).
@@ -28,9 +34,12 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from nsplat.gaussian_ply import write_gaussian_ply
 from nsplat.view_model import ViewModel
 
-FORMATS = ("ply", "npz")
+FORMATS = ("ply", "3dgs", "npz")
+#: Default file name per format, in ``RUN/export/``.
+FILE_NAMES = {"ply": "surfels.ply", "3dgs": "point_cloud.ply", "npz": "surfels.npz"}
 
 
 def surfel_arrays(model: ViewModel) -> dict[str, np.ndarray]:
@@ -98,10 +107,24 @@ def read_npz(path: str | Path) -> dict[str, torch.Tensor]:
         return {k: torch.from_numpy(z[k]) for k in z.files}
 
 
+def write_3dgs(model: ViewModel, path: str | Path) -> Path:
+    """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussian_ply`).
+
+    Raises ``ValueError`` when the model's features are not a colour (a shader turns them into RGB)."""
+    C = model.features.shape[1]
+    if model.shader is not None or (model.sh_degree is None and C != 3):
+        raise ValueError(f"--format 3dgs: the {model.task or 'run'}'s {C} features are not a colour (its shader makes "
+                         "the RGB); a 3DGS file holds a colour per point")
+    a = surfel_arrays(model)
+    return write_gaussian_ply(path, a["means"], a["normals"], a["scales"], a["opacities"], a["features"])
+
+
 def export(model: ViewModel, fmt: str, path: str | Path) -> Path:
-    """Write ``model`` as ``fmt`` (``ply`` or ``npz``) to ``path``."""
+    """Write ``model`` as ``fmt`` (``ply``, ``3dgs`` or ``npz``) to ``path``."""
     if fmt == "ply":
         return write_ply(model, path)
+    if fmt == "3dgs":
+        return write_3dgs(model, path)
     if fmt == "npz":
         return write_npz(model, path)
     raise ValueError(f"--format: expected one of {list(FORMATS)}, got {fmt!r}")

@@ -171,3 +171,23 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
                 for b in range(viewmats.shape[0])]
     image = torch.cat([o.image for o in outs], 0)
     return (image, torch.cat([o.alpha for o in outs], 0)) if with_alpha else image
+
+
+@torch.no_grad()
+def render_geometry(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                    viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, cfg: RenderConfig, *,
+                    seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(alpha [B,H,W,1], depth [B,H,W,1], normal [B,H,W,3])`` of surfels ``[N]`` from cameras ``viewmats [B,4,4]``:
+    coverage, alpha-normalised camera depth (0 where empty) and the composited camera-space (OpenCV) normal,
+    each surfel's turned to face the camera (surfels are two-sided), renormalised (0 where empty). One op call
+    per camera (camera ``b`` with seed ``seed + b``), the camera-space normals splatted as features."""
+    outs = []
+    for b in range(viewmats.shape[0]):
+        R, t = viewmats[b, :3, :3], viewmats[b, :3, 3]
+        n_cam = torch.nn.functional.normalize(normals, dim=-1) @ R.T
+        facing = torch.where(((means @ R.T + t) * n_cam).sum(-1, keepdim=True) > 0, -n_cam, n_cam)
+        out = render(means, normals, scales, opacities, facing, viewmats[b:b + 1], Ks[b:b + 1], width, height, cfg,
+                     seed=seed + b, background=torch.zeros(3, dtype=means.dtype, device=means.device))
+        normal = torch.nn.functional.normalize(out.image, dim=-1) * (out.alpha > 0)
+        outs.append((out.alpha, out.normalized_depth, normal))
+    return tuple(torch.cat(parts) for parts in zip(*outs))

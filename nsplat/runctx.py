@@ -7,15 +7,19 @@ A run folder belongs to one run:
 * while a run is alive it holds an advisory ``fcntl.flock`` on ``<run>/.lock`` (the file holds the
   holder's pid); a second process on the same folder is refused with that pid. The kernel releases the
   lock when the holder exits or dies, so a stale lock file of a dead process is simply re-locked;
-* ``--resume`` with overrides that change the run's ``config.yaml`` is refused before anything is written.
+* ``--resume`` with overrides that change the run's ``config.yaml`` is refused before anything is written;
+* a run that completed leaves ``<run>/finished.json`` (:func:`mark_finished`); ``--resume`` of it changes
+  nothing and says so (:func:`finished_at`).
 """
 from __future__ import annotations
 
 import dataclasses
 import errno
 import fcntl
+import json
 import os
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +27,8 @@ import torch
 
 #: Name of the lock file inside a run folder (ignored when deciding whether a folder is empty).
 LOCK_NAME = ".lock"
+#: Written when a run's ``train`` command completed.
+FINISHED_NAME = "finished.json"
 
 
 class RunFolderError(RuntimeError):
@@ -69,6 +75,21 @@ def check_run_folder(run_dir: Path, *, resume: bool, overwrite: bool) -> None:
     if folder_contents(run_dir) and not overwrite:
         raise RunFolderError(f"run folder {run_dir} is not empty (it holds a previous run); pass --resume to "
                              f"continue that run or --overwrite to delete it and start afresh")
+
+
+def mark_finished(run_dir: Path) -> None:
+    """Record that the run in ``run_dir`` completed (atomically: a partial file never exists)."""
+    tmp = run_dir / f".{FINISHED_NAME}.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps({"finished": time.strftime("%Y-%m-%d %H:%M:%S")}) + "\n")
+    os.replace(tmp, run_dir / FINISHED_NAME)
+
+
+def finished_at(run_dir: Path) -> str | None:
+    """When the run in ``run_dir`` completed (local time, as recorded), or ``None`` when it has not."""
+    try:
+        return str(json.loads((run_dir / FINISHED_NAME).read_text())["finished"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def config_differences(old: Any, new: Any, prefix: str = "") -> list[str]:

@@ -13,6 +13,7 @@ Every task reduces to surfels + optional per-camera shading + an optional image-
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
 import torch
@@ -56,6 +57,9 @@ class ViewModel:
             them, with the ``viewer.render`` overrides (:class:`nsplat.viewer.model.RenderSettings`).
         cameras: the training cameras, or ``None``.
         task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
+        sh_degree: ``features`` hold a view-dependent colour of this spherical-harmonics degree
+            (``3·(L+1)²`` channels, :func:`nsplat.sh.view_colour`), or ``None`` (RGB albedo, or learned
+            features when there is a ``shader``).
     """
 
     means: torch.Tensor
@@ -71,6 +75,7 @@ class ViewModel:
     cameras: TrainingCameras | None = None
     task: str = ""
     seed: int = 0
+    sh_degree: int | None = None
 
     @property
     def num_points(self) -> int:
@@ -109,5 +114,5 @@ def surfel_view(scene: SurfelScene, cameras: TrainingCameras | None, *, shading:
     bg = scene.means.new_zeros(3 if shading == "sh" else scene.features.shape[1]) if background is None \
         else background
     return ViewModel(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, bg,
-                     colours=colours,
-                     render_cfg=render_cfg or RenderConfig(), cameras=cameras, task=task, seed=seed)
+                     colours=colours, render_cfg=render_cfg or RenderConfig(), cameras=cameras, task=task, seed=seed,
+                     sh_degree=math.isqrt(scene.features.shape[1] // 3) - 1 if shading == "sh" else None)

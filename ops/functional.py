@@ -21,9 +21,9 @@ from .build import backend
 from .library import composite_forward_op, sample_op
 from .output import SplatOutput
 from .projection import Projected, project
-from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_backface_cull, check_composite_call,
-                         check_deterministic, check_geometry, check_sample_call, check_sampling, check_settings,
-                         inclusion_for, native_estimator)
+from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_allocation, check_backface_cull,
+                         check_composite_call, check_deterministic, check_devices, check_geometry, check_sample_call,
+                         check_sampling, check_settings, inclusion_for, native_estimator)
 
 _PROJECTED_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
@@ -88,6 +88,7 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
         ``indices [B,H,W,m]`` int32 (front to back, -1 empty), ``probs [B,H,W,m]`` (π, 0 empty),
         ``total [B,H,W,1]`` (Λ̂; 0 below the floor), ``work [B,H,W,1]`` int32 exact kernel evaluations.
     """
+    check_devices(Ks=Ks)
     if _autocast_on(Ks):
         with torch.autocast(Ks.device.type, enabled=False):
             return sample(_projected_float32(proj), _to_float32(Ks), width, height, samples=samples, eps=eps,
@@ -127,6 +128,7 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     Returns:
         ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``.
     """
+    check_devices(Ks=Ks, features=features)
     if _autocast_on(Ks):
         with torch.autocast(Ks.device.type, enabled=False):
             return composite_sample(_projected_float32(proj), _to_float32(features), _to_float32(Ks), indices,
@@ -201,6 +203,8 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
         :class:`SplatOutput`: ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``,
         ``total [B,H,W,1]`` (Λ̂), ``indices [B,H,W,m]`` int32, ``probs [B,H,W,m]``, ``work [B,H,W,1]``.
     """
+    check_devices(means=means, normals=normals, scales=scales, opacities=opacities, features=features,
+                  viewmats=viewmats, Ks=Ks, background=background)
     if _autocast_on(means):
         with torch.autocast(means.device.type, enabled=False):
             f32 = [_to_float32(t) for t in (means, normals, scales, opacities, features, viewmats, Ks)]
@@ -215,6 +219,9 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
                    hermite_tol=hermite_tol, stratified=stratified)
     check_deterministic(deterministic)
     check_backface_cull(backface_cull)
+    for stage in ("sample", "composite"):  # before any work: the projection alone can take minutes
+        check_allocation(B=B, N=N, C=C, width=width, height=height, samples=samples, dtype=means.dtype,
+                         device=means.device, what=stage)
     proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
                    backface_cull=backface_cull)
     indices, probs, total, work = sample(proj, Ks, width, height, samples=samples, eps=eps, seed=seed,

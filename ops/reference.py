@@ -15,7 +15,7 @@ import torch
 from .output import SplatOutput
 from .projection import ALPHA_MAX, PARALLEL_COS, Projected, pixel_rays, project
 from .rng import uniforms
-from .validation import check_backface_cull, check_geometry, check_settings
+from .validation import check_backface_cull, check_dense_allocation, check_geometry, check_settings
 
 #: The samplers' floor on a pixel's total size measure Lambda: below it a pixel gets no sample (its alpha is
 #: below half an ulp of a float 1). ops/csrc/core/common.h: kMinTotal.
@@ -91,6 +91,10 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
                    background=background, C=C, dtype=means.dtype, device=means.device)
     bg = background if background is not None else means.new_zeros(C)
     check_backface_cull(backface_cull)
+    grad = torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad for t in
+                                           (means, normals, scales, opacities, features, viewmats, Ks, background))
+    check_dense_allocation(B=B, N=N, C=C, width=width, height=height, grad=grad, dtype=means.dtype,
+                           device=means.device)
     proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
                    backface_cull=backface_cull)
     pix = pixel_centres(width, height, means.dtype, means.device)

@@ -8,6 +8,7 @@ photo has a known exact value at every pixel.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -237,6 +238,28 @@ def test_every_eighth_image_by_name_is_held_out(tmp_path):
     cap = load_colmap(tmp_path / "scene", cache_dir=tmp_path / "cache")
     assert cap.test.names == ["im_00.png", "im_08.png"]
     assert cap.train.names == [f"im_{j:02d}.png" for j in range(IMAGES) if j % 8]
+
+
+@pytest.mark.parametrize("fmt", ["bin", "txt"])
+def test_of_several_models_the_one_with_most_images_loads(tmp_path, fmt, caplog):
+    """COLMAP's mapper writes one model per connected group of images: ``sparse/0`` may be a 3-image
+    fragment and ``sparse/1`` the whole capture. The loader takes the largest and says so; ``sparse=``
+    picks another."""
+    scene = tmp_path / "scene"
+    rec = _write_scene(scene, fmt)
+    (scene / "sparse" / "0").rename(scene / "sparse" / "1")
+    small = _reconstruction(MODELS)
+    for image_id in sorted(small.reg_image_ids())[3:]:
+        small.deregister_frame(small.image(image_id).frame_id)
+    assert small.num_reg_images() == 3
+    (scene / "sparse" / "0").mkdir()
+    (small.write_binary if fmt == "bin" else small.write_text)(str(scene / "sparse" / "0"))
+    with caplog.at_level(logging.INFO, logger="nsplat.data.colmap"):
+        cap = load_colmap(scene, cache_dir=tmp_path / "cache", holdout_every=0)
+    assert len(cap.train) == rec.num_reg_images() == IMAGES
+    assert "sparse/0 (3 images), sparse/1 (10 images); loading sparse/1" in caplog.text
+    assert "data.capture.sparse" in caplog.text
+    assert len(load_colmap(scene, sparse="sparse/0", cache_dir=tmp_path / "cache", holdout_every=0).train) == 3
 
 
 def _damage(scene: Path, case: str) -> Path:

@@ -23,7 +23,7 @@ NEURAL = sorted(p.name for p in CONFIGS.glob("*.yaml") if read_yaml(p)["task"] =
 def _resolved(path: Path) -> dict[str, Any]:
     """The flat ``{dotted key: value}`` of a config file's resolved dataclass."""
     raw = read_yaml(path)
-    over = ["data.root=my_scene"] if raw.get("data", {}).get("source") == "colmap" else []
+    over = ["data.root=my_scene"] if raw.get("data", {}).get("source") in ("colmap", "transforms") else []
     return _flat(to_dict(load_config(get_task(raw["task"]).Config, raw, over)))
 
 

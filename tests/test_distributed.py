@@ -175,6 +175,7 @@ def test_two_ranks_train_the_one_rank_model(config, two_ranks, tmp_path):
     shutil.copytree(one, cut)
     (cut / "checkpoints" / "ckpt-00000012.pt").unlink()
     (cut / "checkpoints" / "latest").write_text("ckpt-00000010.pt")
+    (cut / "finished.json").unlink()  # a killed run never finished
     results = _ranks("--run", str(cut), "--resume").finish()
     assert all(code == 0 for code, _ in results), results[0][1][-3000:] + results[1][1][-3000:]
     _assert_same_model(_modules(cut), _modules(one), "resumed with 2 processes")

@@ -13,10 +13,13 @@ import imageio.v3 as iio
 import pytest
 import torch
 import yaml
+from plyfile import PlyData
 
 from nsplat.checkpoint import load_checkpoint
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
+from nsplat.eval_protocol import read_per_view_csv
+from nsplat.gaussian_ply import read_gaussian_ply
 from nsplat.metrics_image import lpips_status
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
@@ -114,6 +117,7 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     (cut / "checkpoints" / "ckpt-00000004.pt").unlink()
     (cut / "checkpoints" / "latest").write_text("ckpt-00000002.pt")
     shutil.rmtree(cut / "eval_test")
+    (cut / "finished.json").unlink()  # a killed run never finished
     assert main(["--run", str(cut), "--resume"]) == 0
     a = load_checkpoint(full)
     b = load_checkpoint(cut)
@@ -135,9 +139,15 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     per_view = json.loads((full / "eval_test" / "per_view.json").read_text())["views"]
     assert m["split"] == "test" and m["views"] == 2 == len(per_view)
     assert 0 < m["psnr"]["mean"] < 60 and m["psnr"]["std"] >= 0 and 0 < m["ssim"]["mean"] <= 1
-    ok, msg = lpips_status()
-    assert m["lpips"]["backbone"] == "alex" if ok else m["lpips"] == msg
+    assert m["protocol"] == "standard"
+    for net in ("vgg", "alex"):
+        ok, msg = lpips_status(net)
+        assert set(m["lpips"][net]) == {"mean", "std"} if ok else m["lpips"][net] == msg
     assert m["psnr"]["mean"] == pytest.approx(sum(v["psnr"] for v in per_view) / 2)
+    table = read_per_view_csv(full / "eval_test" / "per_view.csv")
+    assert [r["name"] for r in table] == [v["name"] for v in per_view]
+    assert [r["psnr"] for r in table] == [v["psnr"] for v in per_view]
+    assert iio.imread(full / "eval_test" / "sheet.png").shape[2] in (3, 4)
     for v in per_view:
         stem = Path(v["name"]).name
         assert iio.imread(full / "eval_test" / f"{stem}.png").shape == (24, 24, 3)
@@ -150,6 +160,11 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     hist = json.loads((full / "history.json").read_text())["history"]
     assert [r["step"] for r in hist] == [2, 4] and all("train_psnr" in r and "val_psnr" in r for r in hist)
     assert any((full / "tb").iterdir()) and (full / "geometry.ply").is_file()
+
+    # the 3DGS export of a neural run holds stage 1's surfels and colour (the U-Net is not in the file)
+    assert main(["export", "--run", str(full), "--format", "3dgs"]) == 0
+    gs = read_gaussian_ply(full / "export" / "point_cloud.ply")
+    assert gs["means"].shape[0] == PlyData.read(str(full / "geometry.ply"))["vertex"].count
 
     assert main(["render", "--run", str(full)]) == 0
     frames = list(imageio.get_reader(full / "orbit.mp4").iter_data())
@@ -211,7 +226,7 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
     """The point-only model is evaluated like the U-Net's feature images: ``eval_geometry.json`` holds the PSNR
     of the mean of ``eval.draws`` surfel renders (``render_views(draws=…)``: draw j with the seeds shifted by
     j·DRAW_STRIDE), which has less sampling noise than one draw; ``draws`` < 1 is an error naming it."""
-    from nsplat.metrics_image import psnr
+    from nsplat.metrics_image import psnr, quantise
     from nsplat.render import DRAW_STRIDE, render_views
     from nsplat.tasks.neural.evaluation import evaluate_geometry
 
@@ -230,7 +245,8 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
                            background=views.background, shading="none", draws=3)
     assert torch.allclose(avg, torch.stack(one).mean(0), atol=1e-6) and not torch.allclose(avg, one[0], atol=1e-3)
     out = evaluate_geometry(cfg, ctx, {"train": views}, seed=7)
-    expected = psnr(avg.clamp(0, 1), views.images).mean()
+    expected = psnr(quantise(avg), quantise(views.images)).mean()  # the standard protocol: 8-bit images
+    assert out["train"]["protocol"] == "standard"
     assert out["train"]["psnr"]["mean"] == pytest.approx(float(expected), abs=1e-4)
     with pytest.raises(ValueError, match="draws"):
         render_views(scene, views.viewmats, views.Ks, views.width, views.height, cfg.eval_render(), draws=0)

@@ -3,12 +3,14 @@ allocation checks. Every bad input raises before native code with a message nami
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
 
-from nsplat.ops import Splatter, composite_sample, project, sample, splat
-from nsplat.ops.validation import AllocationError
+from nsplat.ops import Splatter, composite_sample, project, sample, splat, splat_dense
+from nsplat.ops import functional
+from nsplat.ops.validation import AllocationError, memory_limit
 from tests.conftest import make_cameras, make_scene
 
 KW = dict(near=0.01, far=1e10, lowpass=1.0)
@@ -160,6 +162,54 @@ def test_huge_outputs_are_refused_before_allocating(width, height, samples):
     sc, V, K = _setup()
     with pytest.raises(AllocationError, match=r"^width/height/samples: .*samples=.* GiB \(\d+ bytes\)"):
         splat(*_args(sc, V, K), width, height, samples=samples)
+
+
+def test_huge_outputs_are_refused_before_the_projection(monkeypatch):
+    sc, V, K = _setup()
+
+    def no_projection(*args, **kwargs):
+        raise AssertionError("the projection ran before the allocation check")
+
+    monkeypatch.setattr(functional, "project", no_projection)
+    for width, height, samples in [(100000, 100000, 40), (4, 4, 10**9)]:
+        with pytest.raises(AllocationError, match=r"^width/height/samples: "):
+            splat(*_args(sc, V, K), width, height, samples=samples)
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_dense_oracle_refuses_a_huge_image_before_allocating(grad):
+    sc, V, K = _setup()
+    args = list(_args(sc, V, K))
+    args[4] = args[4].clone().requires_grad_(grad)
+    with pytest.raises(AllocationError, match=r"^width/height: 2 camera\(s\) x 100000x100000 px.* dense oracle"):
+        splat_dense(*args, 100000, 100000)
+    if grad:  # autograd keeps every pixel-point term: a size the forward alone fits is refused with a hint
+        side = math.isqrt(memory_limit(torch.device("cpu")) // 400)  # outputs: 1/4 of the memory; graph: 6.7x
+        with pytest.raises(AllocationError, match=r"6 points \(autograd.*torch.no_grad\(\)"):
+            splat_dense(*args, side, side)
+        with torch.no_grad():
+            assert splat_dense(*args, 5, 4).image.shape == (2, 4, 5, 3)
+
+
+@pytest.mark.parametrize("autocast", [False, True])
+def test_tensors_on_an_unsupported_device_are_refused_naming_the_argument(autocast):
+    sc, V, K = _setup(dtype=torch.float32)
+    args = list(_args(sc, V, K))
+    for i, name in [(0, "means"), (4, "features"), (6, "Ks")]:
+        bad = list(args)
+        bad[i] = bad[i].to("meta")
+        with torch.autocast("cpu", enabled=autocast):
+            with pytest.raises(ValueError, match=rf"^{name}: expected a tensor on the CPU or a CUDA device, got "
+                                                 r"device meta"):
+                splat(*bad, 5, 4, samples=2)
+            with pytest.raises(ValueError, match=rf"^{name}: expected a tensor on the CPU or a CUDA device"):
+                splat_dense(*bad, 5, 4)
+    meta = [t.to("meta") for t in args]
+    with pytest.raises(ValueError, match=r"^means: expected a tensor on the CPU or a CUDA device"):
+        project(*meta[:4], meta[5], meta[6], **KW)
+    proj = project(*args[:4], V.float(), K.float(), **KW)
+    with pytest.raises(ValueError, match=r"^Ks: expected a tensor on the CPU or a CUDA device"):
+        sample(proj, K.float().to("meta"), 5, 4, samples=2)
 
 
 def test_samples_beyond_int32_are_refused():

@@ -12,8 +12,11 @@ import yaml
 
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config, read_yaml
+from nsplat.eval_protocol import read_per_view_csv
 from nsplat.sh import sh_view_basis, view_channels, view_colour
+from nsplat.export import read_ply
 from nsplat.tasks.neural.config import Config
+from nsplat.viewer.runs import load_run
 from tests.test_neural import _tiny
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,10 +85,40 @@ def test_point_only_sh_run_trains_evaluates_and_records_its_curve(tmp_path):
     assert history[0]["elapsed_s"] < history[1]["elapsed_s"]
     timing = json.loads((run / "timing.json").read_text())
     assert timing["neural_steps_s"] == 0.0 and timing["train_total_s"] == timing["geometry_s"]
-    assert not (run / "checkpoints").exists() and not (run / "eval_test").exists()  # no stage 2
+    assert not (run / "checkpoints").exists()  # no stage 2
+    # the held-out metrics are stage 1's, written as a stage-2 run writes them (the same renders)
+    metrics = json.loads((run / "eval_test" / "metrics.json").read_text())
+    assert metrics["protocol"] == "standard" and metrics["psnr"] == geo["test"]["psnr"]
+    rows = read_per_view_csv(run / "eval_test" / "per_view.csv")
+    assert len(rows) == 2 and (run / "eval_test" / "sheet.png").is_file()
     # the stage-1 PLY holds the SH coefficients (3·(2+1)² = 27 channels), the first three the mean colour
     header = (run / "geometry.ply").read_bytes()[:4000]
     assert b"property float f_26" in header and b"property float f_27" not in header
+
+
+def test_after_training_commands_take_a_point_only_run(tmp_path, capsys):
+    """``eval``, ``render``, ``view``'s model and ``export`` of a run without stage 2 use its stage-1 surfels."""
+    raw = _tiny(tmp_path / "cache", steps=0)
+    raw["geometry"]["optim"]["shading"] = "sh"
+    raw["geometry"]["sh_degree"] = 1
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(raw))
+    run = tmp_path / "run"
+    assert main(["--config", str(tmp_path / "c.yaml"), "--run", str(run)]) == 0
+    geo = json.loads((run / "eval_geometry.json").read_text())
+    assert main(["eval", "--run", str(run)]) == 0
+    standard = json.loads((run / "eval_test" / "metrics.json").read_text())
+    assert standard["psnr"] == geo["test"]["psnr"]  # `eval` renders what the run's own evaluation rendered
+    assert main(["eval", "--run", str(run), "eval.protocol=nsplat"]) == 0
+    plain = json.loads((run / "eval_test" / "metrics.json").read_text())
+    assert plain["protocol"] == "nsplat" and plain["ssim"] != standard["ssim"]
+    assert "held-out test (2 views, 24x24, nsplat protocol): PSNR" in capsys.readouterr().out
+    assert main(["render", "--run", str(run), "--path", "test", "--outputs", "rgb,depth"]) == 0
+    assert (run / "test.mp4").is_file() and (run / "test_depth.mp4").is_file()
+    model = load_run(run)
+    assert model.shader is None and model.sh_degree == 1 and model.cameras is not None
+    assert model.num_points == geo["points"]
+    assert main(["export", "--run", str(run), "--format", "ply"]) == 0
+    assert read_ply(run / "export" / "surfels.ply")["means"].shape == (geo["points"], 3)
 
 
 def test_shipped_splat_only_config_loads():

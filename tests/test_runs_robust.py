@@ -189,6 +189,22 @@ def test_resume_with_a_changed_config_is_refused_before_writing(tmp_path, capsys
     assert json.loads((run / "metrics.json").read_text())["chamfer"] > 0
 
 
+def test_resume_of_a_finished_run_says_so_and_changes_nothing(tmp_path, capsys):
+    cfg = _tiny_reconstruct(tmp_path, epochs=2)
+    run = tmp_path / "run"
+    assert run_cli(capsys, "--config", str(cfg), "--run", str(run))[0] == 0
+    assert (run / "finished.json").is_file()
+    (run / "metrics.json").unlink()  # a resume that evaluated again would write it back
+    before = folder_hash(run)
+    assert cli_main(["--resume", "--run", str(run)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"run folder: {run}" and out[1].startswith("the run finished on ") and "nothing to resume" in out[1]
+    assert folder_hash(run) == before
+    (run / "finished.json").unlink()  # an unfinished run (killed after its last checkpoint) still resumes
+    assert cli_main(["--resume", "--run", str(run)]) == 0
+    assert (run / "metrics.json").is_file() and (run / "finished.json").is_file()
+
+
 # --------------------------------------------------------------- 8. user errors: one line, exit 2, no run
 @pytest.mark.parametrize("override,key", [("resolution=0", "resolution"), ("views=0", "views"),
                                           ("points=0", "points"), ("points=-5", "points"),

@@ -182,7 +182,7 @@ def test_the_command_line_seed_is_the_config_seed(tmp_path):
 def test_the_shipped_configs_load():
     for path in sorted((ROOT / "configs").glob("*.yaml")):
         raw = read_yaml(path)
-        over = ["data.root=my_scene"] if raw.get("data", {}).get("source") == "colmap" and not raw["data"].get("root") \
-            else []
+        capture = raw.get("data", {}).get("source") in ("colmap", "transforms")
+        over = ["data.root=my_scene"] if capture and not raw["data"].get("root") else []
         cfg = load_config(get_task(raw["task"]).Config, raw, over)
         assert cfg.task == raw["task"]

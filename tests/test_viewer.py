@@ -232,6 +232,16 @@ def test_bad_input_exits_2_with_one_line(run, tmp_path, capsys, argv, message):
     assert message in err and len(err.splitlines()) == 1
 
 
+def test_a_run_without_checkpoint_is_refused_in_one_line(run, tmp_path, capsys):
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "config.yaml").write_text((run / "config.yaml").read_text())  # stage 2 configured, never trained
+    for argv in (["view", "--run", str(fresh)], ["export", "--run", str(fresh), "--format", "ply"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "no checkpoint yet" in err and len(err.splitlines()) == 1
+
+
 def test_demo_run_is_viewable(tmp_path):
     cfg = tmp_path / "demo.yaml"
     cfg.write_text(yaml.safe_dump({"task": "demo", "points": 500, "resolution": 24, "views": 2, "render": {"samples": 8}}))

@@ -1,4 +1,5 @@
-"""Loader for COLMAP sparse models: ``<scene>/sparse/0/{cameras,images,points3D}.{bin,txt}`` + ``<scene>/images/``.
+"""Loader for COLMAP sparse models: ``<scene>/sparse/<k>/{cameras,images,points3D}.{bin,txt}`` + ``<scene>/images/``
+(of several models ``sparse/0``, ``sparse/1``, ..., the one with the most registered images).
 
 The model is read with pycolmap (after :mod:`nsplat.data.colmap_check` has checked that its files are
 whole); camera models ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL`` and ``OPENCV`` are
@@ -9,6 +10,8 @@ come back too, for initialisation. Layouts and conventions: docs/capture.md.
 from __future__ import annotations
 
 import copy
+import logging
+import re
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -24,16 +27,55 @@ REQUIRED = ("cameras", "images", "points3D")
 #: Written by COLMAP >= 3.12 (camera rigs); older models lack both.
 RIG_FILES = ("rigs", "frames")
 
+log = logging.getLogger(__name__)
+
+
+def _has_model(folder: Path) -> bool:
+    return any((folder / f"cameras{ext}").is_file() for ext in (".bin", ".txt"))
+
+
+def registered_images(folder: Path) -> int:
+    """Number of registered images of the model in ``folder``, from the head of ``images.bin`` (its record
+    count) or ``images.txt`` (its ``# Number of images`` header, else two lines per image); 0 when absent."""
+    binary, text = folder / "images.bin", folder / "images.txt"
+    if binary.is_file():
+        with open(binary, "rb") as fh:
+            head = fh.read(8)
+        return int.from_bytes(head, "little") if len(head) == 8 else 0
+    if text.is_file():
+        lines = text.read_text(errors="replace").splitlines()
+        for line in lines:
+            match = _IMAGES_HEADER.match(line)
+            if match:
+                return int(match.group(1))
+        return (len([ln for ln in lines if not ln.startswith("#")]) + 1) // 2
+    return 0
+
+
+_IMAGES_HEADER = re.compile(r"#\s*Number of images:\s*(\d+)")
+
 
 def find_model(scene: Path, sparse: str | None = None) -> Path:
-    """The sparse model folder of ``scene``: ``sparse`` (relative to it) when given, else ``sparse/0``,
-    else ``sparse`` when that holds the files itself."""
+    """The sparse model folder of ``scene``: ``sparse`` (relative to it) when given; else, of the models in
+    ``sparse/<k>/`` (COLMAP's mapper writes one per connected group of images), the one with the most
+    registered images (the lowest ``k`` on a tie), logging the choice when there are several; else ``sparse``
+    when that holds the files itself."""
     if sparse is not None:
         return scene / sparse
-    for candidate in (scene / "sparse" / "0", scene / "sparse"):
-        if any((candidate / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
-            return candidate
-    return scene / "sparse" / "0"
+    root = scene / "sparse"
+    models = sorted((d for d in root.iterdir() if d.is_dir() and d.name.isdigit() and _has_model(d)),
+                    key=lambda d: int(d.name)) if root.is_dir() else []
+    if len(models) > 1:
+        counts = {d: registered_images(d) for d in models}
+        best = max(models, key=lambda d: counts[d])  # max keeps the first of equal counts
+        listed = ", ".join(f"{d.relative_to(scene)} ({counts[d]} images)" for d in models)
+        log.info("COLMAP: %s holds %d models: %s; loading %s, the one with the most registered images "
+                 "(data.capture.sparse, or sparse= of load_colmap, picks another)", root, len(models), listed,
+                 best.relative_to(scene))
+        return best
+    if models:
+        return models[0]
+    return root if _has_model(root) else root / "0"
 
 
 def _one_line(exc: BaseException) -> str:
@@ -99,11 +141,12 @@ def load_colmap(scene: str | Path, *, downscale: int = 1, holdout_every: int = H
     """Load a COLMAP capture: the registered images of the sparse model with their photos.
 
     Args:
-        scene: folder holding ``sparse/0/`` (or ``sparse/``) and the photo folder.
+        scene: folder holding ``sparse/<k>/`` (or ``sparse/``) and the photo folder.
         downscale: read ``<images>_<downscale>/`` when it exists, else shrink ``<images>/`` by this factor.
         holdout_every: every n-th image by name is held out (8: Mip-NeRF 360 / 3DGS; 0: none).
         images: the photo folder, relative to ``scene`` (image names in the model are relative to it).
-        sparse: the model folder relative to ``scene`` (default: :func:`find_model`).
+        sparse: the model folder relative to ``scene`` (default: :func:`find_model`: the model with the most
+            registered images).
         cache_dir: where undistorted photos go (default ``<scene>/nsplat_undistorted/``).
         masks: a folder (relative to ``scene``) of coverage masks, ``<name>.png`` or ``<name>`` per image
             (COLMAP's naming), resized and undistorted like the photos into ``views.masks`` (e.g. for a

@@ -122,6 +122,63 @@ def read_oriented_ply(path: str | Path, dtype: torch.dtype = torch.float32) -> P
     return PointCloud(torch.as_tensor(pts, dtype=dtype), torch.as_tensor(nrm, dtype=dtype), path.stem)
 
 
+@dataclasses.dataclass
+class PlainCloud:
+    """A point cloud as scanners and photogrammetry tools write it.
+
+    Attributes:
+        points: ``[N,3]`` float64 positions. normals: ``[N,3]`` unit normals, or ``None`` when the file has
+            none (or only zero-length ones). colours: ``[N,3]`` float64 in [0, 1], or ``None``.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor | None
+    colours: torch.Tensor | None
+
+
+def read_point_ply(path: str | Path) -> PlainCloud:
+    """Read ``x y z`` and, where present, ``nx ny nz`` and ``red green blue`` (8- or 16-bit integers, or floats in
+    [0, 1]) from a PLY's ``vertex`` element. Bad files raise a one-line :class:`DataError` naming them."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no PLY file at {path}")
+    check_ply_header(path)
+    try:
+        v = PlyData.read(str(path))["vertex"]
+    except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
+        raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
+    names = set(v.data.dtype.names)
+    if not {"x", "y", "z"} <= names:
+        raise DataError(f"{path}: missing vertex properties x y z")
+    if v.count == 0:
+        raise DataError(f"{path}: the PLY has zero vertices")
+
+    def cols(keys: tuple[str, ...]) -> np.ndarray:
+        try:
+            arr = np.stack([np.asarray(v[k], np.float64) for k in keys], 1)
+        except (TypeError, ValueError) as exc:
+            raise DataError(f"{path}: vertex properties {' '.join(keys)} must be numeric scalars: {exc}") from None
+        bad = ~np.isfinite(arr).all(1)
+        if bad.any():
+            raise DataError(f"{path}: {int(bad.sum())} vertices have NaN or Inf {' '.join(keys)}, first at vertex "
+                            f"{int(np.nonzero(bad)[0][0])}")
+        return arr
+
+    points = torch.from_numpy(cols(("x", "y", "z")))
+    normals = colours = None
+    if {"nx", "ny", "nz"} <= names:
+        n = cols(("nx", "ny", "nz"))
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        if (length > 0).all():
+            normals = torch.from_numpy(n / length)
+    if {"red", "green", "blue"} <= names:
+        rgb = cols(("red", "green", "blue"))
+        kind = v.data.dtype["red"]
+        scale = float(np.iinfo(kind).max) if np.issubdtype(kind, np.integer) else 1.0
+        colours = torch.from_numpy(np.clip(rgb / scale, 0.0, 1.0))
+    return PlainCloud(points, normals, colours)
+
+
 def load_dss_shape(name: str, root: str | Path | None = None, dtype: torch.dtype = torch.float32) -> PointCloud:
     """Load DSS shape ``name`` (one of :data:`DSS_SHAPES`) from ``root/dss_pointclouds``.
 

@@ -99,9 +99,38 @@ def _file_path(meta_path: Path, i: int, value: object) -> PurePosixPath:
     return rel if rel.suffix else rel.with_suffix(".png")
 
 
+def _read_meta(meta_path: Path) -> dict:
+    """The parsed file, checked to be an object with a non-empty ``frames`` list."""
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{meta_path}: not valid JSON (truncated or corrupt?): {exc}") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise DataError(f"{meta_path}: expected an object with a non-empty list 'frames'")
+    return meta
+
+
+def point_cloud_path(scene: str | Path, file: str = "transforms.json") -> Path | None:
+    """The point cloud the file names in ``ply_file_path`` (nerfstudio's ``ns-process-data`` writes the SfM
+    points there, in the file's world), relative to ``scene``; ``None`` when it names none. A named file that
+    does not exist is a :class:`DataError`."""
+    meta_path = Path(scene) / file
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"scene: no {file} in {scene}")
+    value = _read_meta(meta_path).get("ply_file_path")
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value:
+        raise DataError(f"{meta_path}: field 'ply_file_path': expected a file name, got {value!r}")
+    path = Path(scene) / value
+    if not path.is_file():
+        raise DataError(f"{meta_path}: field 'ply_file_path' names {path}, which does not exist")
+    return path
+
+
 def load_transforms(scene: str | Path, *, downscale: int = 1, holdout_every: int = HOLDOUT_EVERY,
                     undo_applied_transform: bool = False, file: str = "transforms.json",
-                    cache_dir: str | Path | None = None) -> Capture:
+                    cache_dir: str | Path | None = None, masks: str | None = None) -> Capture:
     """Load a nerfstudio / instant-ngp capture.
 
     Args:
@@ -111,20 +140,18 @@ def load_transforms(scene: str | Path, *, downscale: int = 1, holdout_every: int
         undo_applied_transform: return cameras in the source world of ``applied_transform``.
         file: the JSON file name.
         cache_dir: where undistorted photos go (default ``<scene>/nsplat_undistorted/``).
+        masks: a folder (relative to ``scene``) of coverage masks, ``<file_path>.png`` or ``<file_path>`` per
+            frame, resized and undistorted like the photos into ``views.masks``; ``None``: no masks.
 
     Returns:
-        :class:`~nsplat.data.capture.Capture` (views named by ``file_path``; no SfM points).
+        :class:`~nsplat.data.capture.Capture` (views named by ``file_path``; no SfM points: see
+        :func:`point_cloud_path`).
     """
     scene = Path(scene)
     meta_path = scene / file
     if not meta_path.is_file():
         raise FileNotFoundError(f"scene: no {file} in {scene}")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"{meta_path}: not valid JSON (truncated or corrupt?): {exc}") from exc
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise DataError(f"{meta_path}: expected an object with a non-empty list 'frames'")
+    meta = _read_meta(meta_path)
     applied = np.eye(4)
     if "applied_transform" in meta:
         applied = _matrix(f"{meta_path}: field 'applied_transform'", meta["applied_transform"], (3, 4))
@@ -138,4 +165,4 @@ def load_transforms(scene: str | Path, *, downscale: int = 1, holdout_every: int
         viewmat = opengl_c2w_to_viewmat(torch.from_numpy(source_from_file @ c2w)).numpy()
         views.append(SourceView(name=str(rel), rel=rel, camera=_camera(meta_path, i, meta, frame), viewmat=viewmat))
     return make_capture(scene, views, downscale=downscale, holdout_every=holdout_every, cache_dir=cache_dir,
-                        where=meta_path)
+                        where=meta_path, masks=masks)

@@ -47,7 +47,11 @@ class Task(Protocol):
         """The ``eval`` command on the run's latest checkpoint."""
 
     def render(self, cfg: Any, ctx: RunContext) -> Any:
-        """The ``render`` command (images or video of the run's latest checkpoint)."""
+        """The ``render`` command (images or video of the run's latest checkpoint). A task whose module sets
+        ``RENDER_PATHS = True`` takes a third argument, the command's :class:`nsplat.video.RenderRequest`
+        (camera path, outputs, frame rate, frames, resolution); the CLI refuses those options for the others.
+        A task may also provide ``point_view(cfg, ctx) -> ViewModel``: its point-only model with a colour per
+        point, which ``export --format 3dgs`` writes when ``view``'s features are not a colour."""
 
     def view(self, cfg: Any, ctx: RunContext) -> ViewModel:
         """The ``view`` and ``export`` commands: the run's latest checkpoint (a task without ``build``:

@@ -3,10 +3,11 @@
 Usage::
 
     python train.py view --run DIR [--device cpu] [viewer.port=8080 viewer.host=0.0.0.0 viewer.render.samples=16 …]
-    python train.py export --run DIR --format ply|npz [--out PATH] [--device cpu]
+    python train.py export --run DIR --format ply|3dgs|npz [--out PATH] [--device cpu]
 
 ``view`` takes the viewer's settings as ``viewer.<key>=value`` (:class:`nsplat.viewer.config.ViewerConfig`, the
-same names as ``viewer=true`` on a training command). ``export`` prints the written file on stdout. Bad input
+same names as ``viewer=true`` on a training command). ``export`` prints the written file on stdout; ``3dgs``
+writes the run's point-only model (:mod:`nsplat.export`). Bad input
 (missing run folder, no checkpoint, unknown format, a bad setting) is reported on one line, exit status 2.
 """
 from __future__ import annotations
@@ -19,7 +20,9 @@ from pathlib import Path
 import torch
 
 from nsplat.config import ConfigError
-from nsplat.export import FORMATS, export
+from nsplat.errors import DataError
+from nsplat.export import FILE_NAMES, FORMATS, export
+from nsplat.runctx import RunFolderError
 from nsplat.viewer.config import split_viewer_overrides
 from nsplat.viewer.runs import RunError, load_run
 from nsplat.viewer.server import serve
@@ -45,7 +48,8 @@ def _parser(command: str) -> argparse.ArgumentParser:
                        help="viewer settings (viewer.host, viewer.port, viewer.resolution, viewer.render.<render key>)")
     else:
         p.add_argument("--format", required=True, help=f"one of {', '.join(FORMATS)}")
-        p.add_argument("--out", type=Path, default=None, help="output file (default: RUN/export/surfels.FORMAT)")
+        p.add_argument("--out", type=Path, default=None,
+                       help="output file (default: RUN/export/surfels.ply, point_cloud.ply for 3dgs, surfels.npz)")
     return p
 
 
@@ -62,14 +66,14 @@ def main(command: str, argv: list[str]) -> int:
             rest, cfg = split_viewer_overrides(args.settings)
             if rest:
                 raise UsageError(f"unexpected argument {rest[0]!r}: the viewer's settings are viewer.<key>=value")
-        model = load_run(args.run, args.device)
-    except (UsageError, RunError, ConfigError) as exc:
+        model = load_run(args.run, args.device, points=command == "export" and args.format == "3dgs")
+        if command == "export":
+            path = export(model, args.format, args.out or args.run / "export" / FILE_NAMES[args.format])
+            log.info("%d surfels, %d features", model.num_points, model.features.shape[1])
+            print(path)
+            return 0
+    except (UsageError, RunError, RunFolderError, ConfigError, DataError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if command == "export":
-        path = export(model, args.format, args.out or args.run / "export" / f"surfels.{args.format}")
-        log.info("%d surfels, %d features", model.num_points, model.features.shape[1])
-        print(path)
-        return 0
     serve(model, cfg)
     return 0

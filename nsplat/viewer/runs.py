@@ -11,6 +11,7 @@ from typing import Any
 
 import torch
 
+from nsplat.checkpoint import NoCheckpoint
 from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.runctx import RunContext
 from nsplat.tasks import get_task
@@ -38,17 +39,23 @@ def read_run_config(run_dir: Path) -> tuple[str, Any]:
         raise RunError(f"--run {run_dir}: {exc}") from exc
 
 
-def load_run(run_dir: Path, device: torch.device | str = "cpu") -> ViewModel:
+def load_run(run_dir: Path, device: torch.device | str = "cpu", points: bool = False) -> ViewModel:
     """The trained scene of ``run_dir`` (any task with a ``view``) as a :class:`ViewModel` on ``device``.
 
-    A training task (one with ``build``) is viewed at its latest checkpoint, so the folder must have one.
+    A training task (one with ``build``) is viewed at its latest checkpoint (a point-only neural run: its
+    ``geometry.ply``); without one, :class:`RunError`.
+    ``points``: the run's point-only model instead (its ``point_view``, where the task has one: the neural
+    task's stage-1 surfels with their colour), for exports that store a colour per point.
     """
     run_dir = Path(run_dir)
     name, cfg = read_run_config(run_dir)
     task = get_task(name)
     if not hasattr(task, "view"):
         raise RunError(f"--run {run_dir}: task {name!r} has no viewer")
-    if hasattr(task, "build") and not (run_dir / "checkpoints" / "latest").is_file():
-        raise RunError(f"--run {run_dir}: no checkpoint yet (train first, or wait for the first checkpoint)")
     ctx = RunContext(run_dir=run_dir, device=torch.device(device), seed=int(getattr(cfg, "seed", 0)), resume=True)
-    return task.view(cfg, ctx)
+    if points and hasattr(task, "point_view"):
+        return task.point_view(cfg, ctx)
+    try:
+        return task.view(cfg, ctx)
+    except NoCheckpoint:
+        raise RunError(f"--run {run_dir}: no checkpoint yet (train first, or wait for the first checkpoint)") from None

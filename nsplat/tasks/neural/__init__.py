@@ -18,11 +18,13 @@ Both stages run on the engine (:mod:`nsplat.engine`), data-parallel under torchr
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
-and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.json``, PNGs),
-``eval_geometry.json`` (stage 1 alone on val and the held-out split) and ``orbit.mp4``.
+and val PSNR over steps), ``eval_<split>/`` (``metrics.json``, ``per_view.csv`` and ``.json``, ``sheet.png``, PNGs),
+``eval_geometry.json`` (stage 1 alone on val and the held-out split), ``finished.json`` and the ``render``
+command's videos (``orbit.mp4``, ``test.mp4``, ``train-smooth_depth.mp4``, ...).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -33,23 +35,26 @@ from nsplat import distributed
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
 from nsplat.engine import Engine, checkpoint_rows, latest_payload, write_json
-from nsplat.runctx import RunContext
+from nsplat.runctx import RunContext, RunFolderError
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_orbit
-from nsplat.tasks.neural.geometry import fit_geometry
-from nsplat.tasks.neural.model import NeuralRenderer, load_model, neural_scene_config, neural_scene_from, neural_view
+from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_path_videos
+from nsplat.tasks.neural.geometry import fit_geometry, geometry_scene_config
+from nsplat.tasks.neural.model import Renderer, load_model, neural_scene_config, neural_scene_from, neural_view
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
-from nsplat.view_model import ViewModel, cameras_of
+from nsplat.video import RenderRequest
+from nsplat.view_model import ViewModel, cameras_of, surfel_view
 
-__all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "render", "run", "view"]
+__all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "point_view", "render", "run", "view"]
 
 log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
+#: ``render`` takes a :class:`nsplat.video.RenderRequest` (camera path, outputs, fps, frames, resolution).
+RENDER_PATHS = True
 
 
 def run(cfg: Config, ctx: RunContext) -> dict:
@@ -89,18 +94,21 @@ def run(cfg: Config, ctx: RunContext) -> dict:
 
 
 def _point_only_result(cfg: Config, ctx: RunContext, val: PosedViews | None, timing: dict) -> dict:
-    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics are the run's."""
+    """``neural.steps: 0``: the stage-1 surfels are the model; their held-out metrics (``eval_<split>/``, as a
+    stage-2 run writes them, and ``eval_geometry.json`` with the validation split) are the run's."""
     if not distributed.is_main():
         return {}
     splits = {"val": val if val is not None else load_views(cfg, "val", ctx.device),
               cfg.eval.split: load_views(cfg, cfg.eval.split, ctx.device)}
-    out = evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    evaluate_geometry(cfg, ctx, splits, cfg.eval_seed())
+    metrics = evaluate(cfg, ctx, cfg.eval.split)
     write_json(ctx.run_dir / "timing.json", {**timing, "train_total_s": timing["geometry_s"], "neural_steps_s": 0.0})
-    return {"split": cfg.eval.split, "points": out["points"], **out[cfg.eval.split]}
+    return metrics
 
 
-def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRenderer | None = None) -> dict:
-    """Held-out metrics of ``split`` (:func:`nsplat.tasks.neural.evaluation.evaluate_split`)."""
+def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: Renderer | None = None) -> dict:
+    """Held-out metrics of ``split`` (:func:`nsplat.tasks.neural.evaluation.evaluate_split`) of ``model``, by
+    default the run's (:func:`~nsplat.tasks.neural.model.load_model`: stage 2, or stage 1 of a point-only run)."""
     if split not in ("train", "val", "test"):
         raise ConfigError(f"--split: expected train, val or test, got {split!r}")
     cfg = with_capture_render(cfg)
@@ -108,14 +116,31 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: NeuralRen
     return evaluate_split(cfg, ctx, model, load_views(cfg, split, ctx.device), split, cfg.eval_seed())
 
 
-def render(cfg: Config, ctx: RunContext) -> Path:
-    """Write ``orbit.mp4``: the trained model along a circle of cameras around the scene."""
+def render(cfg: Config, ctx: RunContext, request: RenderRequest | None = None) -> list[Path]:
+    """Videos of the trained model along a camera path, one per output (default: ``orbit.mp4``, RGB along a
+    circle of cameras around the scene; :class:`nsplat.video.RenderRequest`, :func:`write_path_videos`)."""
     cfg = with_capture_render(cfg)
-    return write_orbit(cfg, ctx, load_model(cfg, ctx), load_views(cfg, "train", ctx.device), cfg.eval_seed())
+    return write_path_videos(cfg, ctx, load_model(cfg, ctx), request or RenderRequest())
+
+
+def point_view(cfg: Config, ctx: RunContext) -> ViewModel:
+    """The point-only model for exports that store a colour per point (``export --format 3dgs``): stage 1's
+    surfels (``geometry.ply``) with their RGB or view-dependent SH colour, without cameras."""
+    path = ctx.run_dir / "geometry.ply"
+    if not path.is_file():
+        raise RunFolderError(f"--run {ctx.run_dir}: no geometry.ply yet (stage 1 has not finished)")
+    scene = SurfelScene.load_ply(path, geometry_scene_config(cfg), device=ctx.device)
+    background = torch.tensor(cfg.data.background, dtype=scene.means.dtype, device=ctx.device)
+    return surfel_view(scene, None, shading=cfg.geometry.optim.shading, background=background,
+                       render_cfg=cfg.eval_render(), task="neural", seed=cfg.eval_seed())
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:
-    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras."""
-    model = load_model(cfg, ctx).eval()
+    """The task contract's ``view``: the trained renderer (eval mode) with the training cameras; for a
+    point-only run (``neural.steps: 0``) stage 1's surfels (:func:`point_view`)."""
+    model = point_view(cfg, ctx) if cfg.neural.steps == 0 else load_model(cfg, ctx).eval()
     train = load_views(cfg, "train", ctx.device)
-    return neural_view(model, cameras_of(train.images, train.viewmats, train.Ks), seed=cfg.eval_seed())
+    cameras = cameras_of(train.images, train.viewmats, train.Ks)
+    if isinstance(model, ViewModel):
+        return dataclasses.replace(model, cameras=cameras)
+    return neural_view(model, cameras, seed=cfg.eval_seed())

@@ -1,7 +1,8 @@
-"""Task ``neural`` on a user's own capture (``data.source: colmap``, docs/capture.md).
+"""Task ``neural`` on a user's own capture (``data.source: colmap`` or ``transforms``, docs/capture.md).
 
-The COLMAP folder at ``data.root`` is loaded once per process (:func:`nsplat.data.colmap.load_colmap`:
-undistorted, downscaled, every 8th image by name held out as ``test``) and prepared for training:
+The COLMAP folder (:func:`nsplat.data.colmap.load_colmap`) or nerfstudio / instant-ngp ``transforms.json``
+folder (:func:`nsplat.data.transforms_json.load_transforms`) at ``data.root`` is loaded once per process
+(undistorted, downscaled, every 8th image by name held out as ``test``) and prepared for training:
 
 * **validation split**: of the training images, every ``val_every``-th from the ``val_every // 2``-th is
   held out as ``val`` (for model selection: the test views are never looked at before the end);
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import torch
 
@@ -24,6 +26,7 @@ from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError, to_dict
 from nsplat.data.capture import SfmPoints
 from nsplat.data.colmap import load_colmap
+from nsplat.data.transforms_json import load_transforms, point_cloud_path
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
 from nsplat.tasks.neural.background import depth_range, fit_sphere, scene_frame
@@ -38,20 +41,32 @@ class PreparedCapture:
     Attributes:
         splits: ``train``, ``val``, ``test`` :class:`PosedViews` (CPU).
         points: the SfM points (``xyz`` in the training frame), or ``None`` when the model has none.
+        centre, scale: the training frame is ``x' = scale · (x − centre)`` of the capture's world
+            (``centre [3]`` float64; zeros and 1 without ``normalize``).
+        ply: the point cloud a ``transforms.json`` names in ``ply_file_path`` (in the capture's world), or
+            ``None``.
     """
 
     splits: dict[str, PosedViews]
     points: SfmPoints | None
+    centre: torch.Tensor
+    scale: float
+    ply: Path | None = None
 
 
 _CACHE: dict[str, PreparedCapture] = {}
 
 
+def moved_viewmats(viewmats: torch.Tensor, centre: torch.Tensor, s: float) -> torch.Tensor:
+    """Cameras ``viewmats [B,4,4]`` in the frame ``x' = s (x − centre)``: ``[R | s (R·centre + t)]`` (float32)."""
+    V = viewmats.double().clone()
+    V[:, :3, 3] = s * (V[:, :3, :3] @ centre.double() + V[:, :3, 3])
+    return V.float()
+
+
 def _transform(views: PosedViews, centre: torch.Tensor, s: float) -> PosedViews:
-    """``views`` in the frame ``x' = s (x − centre)``: ``[R | s (R·centre + t)]`` (camera units scale too)."""
-    V = views.viewmats.double().clone()
-    V[:, :3, 3] = s * (V[:, :3, :3] @ centre + V[:, :3, 3])
-    return dataclasses.replace(views, viewmats=V.float())
+    """``views`` in the frame ``x' = s (x − centre)`` (camera units scale too)."""
+    return dataclasses.replace(views, viewmats=moved_viewmats(views.viewmats, centre, s))
 
 
 def prepare(cfg: Config) -> PreparedCapture:
@@ -60,9 +75,15 @@ def prepare(cfg: Config) -> PreparedCapture:
     if key in _CACHE:
         return _CACHE[key]
     c = cfg.data.capture
-    cap = load_colmap(resolve(cfg.data.root or ""), downscale=c.downscale, holdout_every=c.holdout_every,
-                      images=c.images, sparse=c.sparse, masks=c.masks,
-                      cache_dir=resolve(c.cache_dir) if c.cache_dir else None)
+    root, cache = resolve(cfg.data.root or ""), resolve(c.cache_dir) if c.cache_dir else None
+    ply = None
+    if cfg.data.source == "transforms":
+        cap = load_transforms(root, downscale=c.downscale, holdout_every=c.holdout_every, file=c.file,
+                              cache_dir=cache, masks=c.masks)
+        ply = point_cloud_path(root, c.file)
+    else:
+        cap = load_colmap(root, downscale=c.downscale, holdout_every=c.holdout_every, images=c.images,
+                          sparse=c.sparse, masks=c.masks, cache_dir=cache)
     n = len(cap.train)
     val_idx = list(range(c.val_every // 2, n, c.val_every))
     if not val_idx or len(val_idx) == n:
@@ -71,6 +92,7 @@ def prepare(cfg: Config) -> PreparedCapture:
     splits = {"train": cap.train.subset([i for i in range(n) if i not in val_idx]),
               "val": cap.train.subset(val_idx), "test": cap.test}
     points = cap.points
+    centre, s = torch.zeros(3, dtype=torch.float64), 1.0
     if c.normalize:
         centre, radius = scene_frame(torch.cat([cap.train.viewmats, cap.test.viewmats]))
         s = c.radius / radius
@@ -78,8 +100,17 @@ def prepare(cfg: Config) -> PreparedCapture:
         if points is not None:
             points = dataclasses.replace(points, xyz=(s * (points.xyz.double() - centre)).float())
     _CACHE.clear()
-    _CACHE[key] = PreparedCapture(splits=splits, points=points)
+    _CACHE[key] = PreparedCapture(splits=splits, points=points, centre=centre, scale=s, ply=ply)
     return _CACHE[key]
+
+
+def to_training_frame(cfg: Config, viewmats: torch.Tensor) -> torch.Tensor:
+    """Cameras ``viewmats [B,4,4]`` given in the data's own world (the COLMAP model's, ``transforms.json``'s,
+    the NeRF-synthetic scene's) moved into the training frame (a capture's normalisation; else as given)."""
+    if not cfg.data.is_capture():
+        return viewmats.float()
+    prep = prepare(cfg)
+    return moved_viewmats(viewmats, prep.centre, prep.scale)
 
 
 def capture_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
@@ -88,12 +119,12 @@ def capture_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
 
 
 def with_capture_render(cfg: Config) -> Config:
-    """``cfg`` with ``render.near/far`` set when ``data.capture.near_far`` applies to a COLMAP source:
+    """``cfg`` with ``render.near/far`` set when ``data.capture.near_far`` applies to a capture:
     from the SfM points' depths (:func:`nsplat.tasks.neural.background.depth_range`) when the model has points, else,
     with a background sphere, ``near`` half the smallest camera-to-sphere distance and ``far`` twice the
     largest; otherwise ``cfg`` itself. Without a near plane the sphere's points beside a camera (depth
     near 0) would be splatted over the whole image."""
-    if cfg.data.source != "colmap" or not cfg.data.capture.near_far:
+    if not cfg.data.is_capture() or not cfg.data.capture.near_far:
         return cfg
     prep = prepare(cfg)
     bg = cfg.geometry.background

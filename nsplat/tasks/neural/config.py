@@ -36,14 +36,18 @@ class ProceduralConfig:
 
 @dataclasses.dataclass
 class CaptureConfig:
-    """A COLMAP capture (``data.source: colmap``; :mod:`nsplat.tasks.neural.capture`, docs/capture.md).
+    """A capture of real photos: a COLMAP folder (``data.source: colmap``) or a nerfstudio / instant-ngp
+    ``transforms.json`` folder (``data.source: transforms``; :mod:`nsplat.tasks.neural.capture`, docs/capture.md).
 
     Attributes:
         downscale: photos at ``1/downscale`` (read from ``<images>_<downscale>/`` when it exists).
         holdout_every: every n-th image by name is the test split (8: the Mip-NeRF 360 / 3DGS convention).
         val_every: of the other images, every n-th from the (n/2)-th is the validation split (not trained on).
-        images, sparse, masks: folders relative to ``data.root``: photos, model (``null``: ``sparse/0`` or
-            ``sparse``), coverage masks (``null``: none; needed only by ``geometry.init: hull``).
+        images, sparse, masks: folders relative to ``data.root``: photos and model of a COLMAP capture
+            (``sparse: null``: of the models in ``sparse/<k>``, the one with the most registered images, or
+            ``sparse`` itself), coverage masks of either kind (``<masks>/<image name>.png`` or
+            ``<masks>/<image name>``; ``null``: none; needed only by ``geometry.init: hull``).
+        file: the JSON file of a ``transforms`` capture (frames' ``file_path`` relative to ``data.root``).
         normalize: move the world so the cameras' common look-at point is the origin and scale it so their
             median distance to it is ``radius`` (the units the learning rates were set in).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
@@ -61,9 +65,14 @@ class CaptureConfig:
     radius: float = 3.2
     near_far: bool = True
     cache_dir: str | None = None
+    file: str = "transforms.json"
 
     def __post_init__(self) -> None:
         require_fields(self, downscale=">=1", radius=">0", holdout_every=">=2", val_every=">=2")
+
+
+#: Data sources that are captures of real photos (``data.capture`` applies).
+CAPTURE_SOURCES = ("colmap", "transforms")
 
 
 @dataclasses.dataclass
@@ -71,15 +80,16 @@ class DataConfig:
     """Where the posed images come from.
 
     Attributes:
-        source: ``procedural`` (the embedded scene), ``nerf_synthetic`` (a folder at ``root``) or ``colmap``
-            (a COLMAP capture at ``root``: ``sparse/0`` + ``images/``, settings in ``capture``).
-        root: NeRF-synthetic or COLMAP scene folder (relative paths: to the repo root).
+        source: ``procedural`` (the embedded scene), ``nerf_synthetic`` (a folder at ``root``), ``colmap``
+            (a COLMAP capture at ``root``: ``sparse/<k>`` + ``images/``) or ``transforms`` (a nerfstudio or
+            instant-ngp ``transforms.json`` folder at ``root``); the captures' settings in ``capture``.
+        root: the scene folder (relative paths: to the repo root).
         resolution: image side after resizing (``null``: as stored).
         background: RGB composited under the RGBA images (white: NeRF's evaluation protocol).
         train_limit, val_limit, test_limit: use only the first k frames of a split (``null``: all).
     """
 
-    source: Literal["procedural", "nerf_synthetic", "colmap"] = "procedural"
+    source: Literal["procedural", "nerf_synthetic", "colmap", "transforms"] = "procedural"
     root: str | None = None
     resolution: int | None = None
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -89,11 +99,15 @@ class DataConfig:
     val_limit: int | None = None
     test_limit: int | None = None
 
+    def is_capture(self) -> bool:
+        """Whether the source is a capture of real photos (``colmap`` or ``transforms``: ``capture`` applies)."""
+        return self.source in CAPTURE_SOURCES
+
     def __post_init__(self) -> None:
         require(self.source == "procedural" or bool(self.root), "root", f"a folder with source {self.source}",
                 self.root)
-        require(self.source != "colmap" or self.resolution is None, "resolution",
-                "null with source colmap (set capture.downscale)", self.resolution)
+        require(not self.is_capture() or self.resolution is None, "resolution",
+                f"null with source {self.source} (set capture.downscale)", self.resolution)
         require_fields(self, resolution=">=8", background="unit", train_limit=">=1", val_limit=">=1",
                        test_limit=">=1")
 
@@ -180,10 +194,15 @@ class GeometryConfig:
 
     Attributes:
         init: ``hull`` (visual hull of the training silhouettes), ``sfm`` (the SfM points of a COLMAP
-            capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a PLY written by
-            :meth:`nsplat.scene.SurfelScene.save_ply` with this stage's attributes, e.g. a previous
-            run's ``geometry.ply``) or ``random`` (``max_points`` points uniform in ``bbox``, random
-            normals, grey: a start without silhouettes or SfM points).
+            capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a previous run's ``geometry.ply``
+            with this stage's attributes, a 3D Gaussian splatting PLY such as ``export --format 3dgs``
+            writes, or any point cloud with ``x y z`` and optional normals and colours:
+            :func:`nsplat.tasks.neural.geometry._ply_scene`) or ``random`` (``max_points`` points uniform
+            in ``bbox``, random normals, grey: a start without silhouettes or SfM points) or ``auto``:
+            ``sfm`` for a COLMAP capture; for a ``transforms`` capture the point cloud its ``ply_file_path``
+            names (moved with the cameras), else the hull when ``data.capture.masks`` is set, else
+            ``max_points`` random points in ``bbox`` that ``sfm.fill_seen`` of the training cameras see (their
+            common view; opacity ``sfm.fill_opacity``, colours from the photos); ``hull`` otherwise.
         ply: path of that PLY (relative: to the repo root).
         bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
         grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
@@ -200,7 +219,7 @@ class GeometryConfig:
         sfm: :class:`SfmInitConfig`. background: :class:`BackgroundConfig` (points added to the initial ones).
     """
 
-    init: Literal["hull", "ply", "random", "sfm"] = "hull"
+    init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
     ply: str | None = None
     bbox: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     grid: int = 64
@@ -340,7 +359,13 @@ class EvalConfig:
 
     Attributes:
         split: held-out split evaluated at the end of training (and by ``eval`` by default).
-        images: write rendered/GT PNGs. orbit_frames, fps: the ``render`` command's orbit video.
+        protocol: how held-out views are scored (:mod:`nsplat.eval_protocol`): ``standard`` (the published
+            tables: render and ground truth quantised to 8 bits, PSNR, SSIM over zero-padded images as in 3D
+            Gaussian splatting, LPIPS VGG and AlexNet when installed) or ``nsplat`` (float images, SSIM over
+            the valid region). Training-time validation (``history.json``) stays on float images.
+        images: write rendered/GT PNGs. sheet_views: views on the comparison sheet ``sheet.png`` (ground
+            truth | render | error heat map; evenly spread; 0: no sheet).
+        orbit_frames, fps: the ``render`` command's frames (orbit and smooth paths) and frame rate.
         val_views: views per split in the training-time validation (``log.validate``; ``history.json``).
         render: overrides of the top-level ``render`` section for every evaluation render (held-out
             metrics, training-time validation, the orbit video), e.g. ``eval.render: {samples: 80}``;
@@ -354,8 +379,10 @@ class EvalConfig:
     """
 
     split: Literal["train", "val", "test"] = "test"
+    protocol: Literal["standard", "nsplat"] = "standard"
     val_views: int = 8
     images: bool = True
+    sheet_views: int = 8
     orbit_frames: int = 60
     fps: int = 20
     render: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -363,7 +390,7 @@ class EvalConfig:
     draws: int = 1
 
     def __post_init__(self) -> None:
-        require_fields(self, val_views=">=1", orbit_frames=">=1", fps=">=1", draws=">=1")
+        require_fields(self, val_views=">=1", sheet_views=">=0", orbit_frames=">=1", fps=">=1", draws=">=1")
 
 
 @dataclasses.dataclass
@@ -398,8 +425,9 @@ class Config:
                               f"colour), got {self.geometry.optim.shading!r}")
         if self.data.source != "colmap" and self.geometry.init == "sfm":
             raise ConfigError("geometry.init: sfm needs data.source colmap (SfM points)")
-        if self.data.source != "colmap" and self.geometry.background.model != "none":
-            raise ConfigError("geometry.background.model: sphere needs data.source colmap (unmasked photos)")
+        if not self.data.is_capture() and self.geometry.background.model != "none":
+            raise ConfigError("geometry.background.model: sphere needs data.source colmap or transforms (unmasked "
+                              "photos)")
 
     def view_rest(self) -> int:
         """Feature channels of the higher SH coefficients the stage-2 points carry (``neural.view_colour``)."""

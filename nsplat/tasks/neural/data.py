@@ -1,5 +1,6 @@
-"""The neural task's posed views: the embedded procedural scene, a NeRF-synthetic folder or a COLMAP
-capture (:mod:`nsplat.tasks.neural.capture`), one split at a time as :class:`~nsplat.data.views.PosedViews`."""
+"""The neural task's posed views: the embedded procedural scene, a NeRF-synthetic folder or a capture (COLMAP
+or ``transforms.json``, :mod:`nsplat.tasks.neural.capture`), one split at a time as
+:class:`~nsplat.data.views.PosedViews`."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,8 +30,8 @@ def scene_root(cfg: Config) -> Path:
 
 
 def load_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
-    """One split of the configured scene on ``device`` (a COLMAP capture: :mod:`nsplat.tasks.neural.capture`)."""
-    if cfg.data.source == "colmap":
+    """One split of the configured scene on ``device`` (a capture: :mod:`nsplat.tasks.neural.capture`)."""
+    if cfg.data.is_capture():
         return capture_views(cfg, split, device)
     limit = {"train": cfg.data.train_limit, "val": cfg.data.val_limit, "test": cfg.data.test_limit}[split]
     views = load_split(scene_root(cfg), split, resolution=cfg.data.resolution, background=cfg.data.background,

@@ -1,28 +1,37 @@
-"""Evaluation of the neural task: renders of a split (:func:`render_split`), held-out metrics with PNGs
-(:func:`evaluate_split`), stage 1 alone (:func:`evaluate_geometry`) and the orbit video (:func:`write_orbit`)."""
+"""Evaluation of the neural task: renders of cameras and splits (:func:`render_cameras`, :func:`render_split`),
+held-out metrics under the evaluation protocol with a per-view table and a comparison sheet
+(:func:`evaluate_split`), stage 1 alone (:func:`evaluate_geometry`) and videos along camera paths
+(:func:`write_path_videos`: orbit, the test views, a smooth path through the training cameras, a nerfstudio
+camera path; RGB, depth, normal, alpha)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 import time
 from pathlib import Path
 
-import imageio
 import imageio.v3 as iio
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from nsplat.cameras import look_at
+from nsplat.camera_paths import CameraPath, orbit, read_nerfstudio_path, smooth_path
+from nsplat.comparison_sheet import write_sheet
+from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
 from nsplat.engine import write_json
-from nsplat.metrics_image import error_share, lpips, lpips_status, psnr, silhouette_band, ssim
-from nsplat.render import RenderConfig, render_views
+from nsplat.eval_protocol import protocol_images, score_views, summary, summary_text, write_per_view_csv
+from nsplat.metrics_image import error_share, silhouette_band
+from nsplat.render import RenderConfig, render_geometry, render_views
 from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import SurfelScene
+from nsplat.tasks.neural.capture import to_training_frame
 from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.geometry import geometry_scene_config
-from nsplat.tasks.neural.model import NeuralRenderer
+from nsplat.tasks.neural.model import Renderer
+from nsplat.video import RenderRequest, depth_picture, normal_picture, to_uint8, write_video
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +45,6 @@ def _stats(x: torch.Tensor) -> dict[str, float]:
     return {"mean": float(x.mean()), "std": float(x.std(unbiased=False)) if x.numel() > 1 else 0.0}
 
 
-def _png(x: torch.Tensor) -> np.ndarray:
-    return (x.detach().cpu().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-
-
 def _band(rgb: torch.Tensor, views: PosedViews, width: int = 1) -> dict | None:
     """Where the error sits: the share of pixels within ``width`` px of a silhouette edge and their share
     of the squared error (``None`` without coverage masks)."""
@@ -51,68 +56,76 @@ def _band(rgb: torch.Tensor, views: PosedViews, width: int = 1) -> dict | None:
 
 
 @torch.no_grad()
-def render_split(model: NeuralRenderer, views: PosedViews, seed: int, batch: int = 4,
-                 render_cfg: RenderConfig | None = None, draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of all ``views`` (eval mode), with the
-    render settings ``render_cfg`` (default: the model's, i.e. training's; see ``Config.eval_render``) and
-    ``draws`` averaged op draws per feature image (``eval.draws``)."""
+def render_cameras(model: Renderer, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                   seed: int, batch: int = 4, render_cfg: RenderConfig | None = None, draws: int = 1,
+                   progress: tqdm | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendered RGB ``[B,H,W,3]`` and feature images ``[B,C',H,W]`` of the cameras ``viewmats [B,4,4]``,
+    ``Ks [B,3,3]`` (eval mode, ``batch`` cameras per call, the call starting at camera ``s`` with op seed
+    ``seed + s``), with the render settings ``render_cfg`` (default: the model's, i.e. training's; see
+    ``Config.eval_render``) and ``draws`` averaged op draws per feature image (``eval.draws``); ``progress``
+    advances by one per camera."""
     was, trained_cfg = model.training, model.render_cfg
     model.eval()
     if render_cfg is not None:
         model.render_cfg = render_cfg
     rgbs, conds = [], []
     try:
-        for s in range(0, len(views), batch):
-            rgb, cond = model(views.viewmats[s:s + batch], views.Ks[s:s + batch], views.width, views.height, seed + s,
-                              draws=draws)
+        for s in range(0, viewmats.shape[0], batch):
+            rgb, cond = model(viewmats[s:s + batch], Ks[s:s + batch], width, height, seed + s, draws=draws)
             rgbs.append(rgb.permute(0, 2, 3, 1))
             conds.append(cond)
+            if progress is not None:
+                progress.update(rgb.shape[0])
     finally:
         model.train(was)
         model.render_cfg = trained_cfg
     return torch.cat(rgbs).clamp(0, 1), torch.cat(conds)
 
 
-def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: PosedViews, split: str,
-                   seed: int) -> dict:
-    """PSNR/SSIM (LPIPS if available offline) per view of ``views`` (split ``split``) on the configured
-    background, rendered with op seed ``seed``.
+def render_split(model: Renderer, views: PosedViews, seed: int, batch: int = 4,
+                 render_cfg: RenderConfig | None = None, draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`render_cameras` of all ``views``."""
+    return render_cameras(model, views.viewmats, views.Ks, views.width, views.height, seed, batch, render_cfg, draws)
 
-    Writes ``eval_<split>/metrics.json`` (mean ± std), ``per_view.json`` and ``<name>.png`` /
-    ``<name>_gt.png`` per view; logs the means. Returns the metrics dict.
+
+def evaluate_split(cfg: Config, ctx: RunContext, model: Renderer, views: PosedViews, split: str,
+                   seed: int) -> dict:
+    """Score every view of ``views`` (split ``split``) under ``eval.protocol`` (:mod:`nsplat.eval_protocol`),
+    rendered on the configured background with op seed ``seed``.
+
+    Writes to ``eval_<split>/``: ``metrics.json`` (the protocol, mean ± std per metric), ``per_view.csv``
+    and ``per_view.json`` (one row per view), ``sheet.png`` (ground truth | render | error heat map of
+    ``eval.sheet_views`` views) and, with ``eval.images``, ``<name>.png`` / ``<name>_gt.png`` per view;
+    reports the means on stdout. Returns the metrics dict.
     """
     t0 = time.perf_counter()
     rgb, _ = render_split(model, views, seed=seed, render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
     seconds = time.perf_counter() - t0
-    p, s = psnr(rgb, views.images), ssim(rgb, views.images)
-    ok, lp_msg = lpips_status()
-    lp = lpips(rgb, views.images) if ok else None
+    scores = score_views(rgb, views.images, cfg.eval.protocol)
     out_dir = ctx.run_dir / f"eval_{split}"
     out_dir.mkdir(parents=True, exist_ok=True)
-    per_view = []
-    for i, name in enumerate(views.names):
-        stem = Path(name).name  # a photo keeps no second extension: im_000.png → im_000.png
-        if Path(stem).suffix.lower() in IMAGE_SUFFIXES:
-            stem = Path(stem).stem
-        row = {"name": name, "psnr": float(p[i]), "ssim": float(s[i])}
-        if lp is not None:
-            row["lpips"] = float(lp[i])
-        per_view.append(row)
-        if cfg.eval.images:
-            iio.imwrite(out_dir / f"{stem}.png", _png(rgb[i]))
-            iio.imwrite(out_dir / f"{stem}_gt.png", _png(views.images[i]))
+    rows = [{"name": name, **{k: float(v[i]) for k, v in scores.per_view.items()}}
+            for i, name in enumerate(views.names)]
+    if cfg.eval.images:
+        for i, name in enumerate(views.names):
+            stem = Path(name).name  # a photo keeps no second extension: im_000.png → im_000.png
+            if Path(stem).suffix.lower() in IMAGE_SUFFIXES:
+                stem = Path(stem).stem
+            iio.imwrite(out_dir / f"{stem}.png", to_uint8(rgb[i]))
+            iio.imwrite(out_dir / f"{stem}_gt.png", to_uint8(views.images[i]))
+    if cfg.eval.sheet_views:
+        shown = protocol_images(rgb, views.images, cfg.eval.protocol)
+        write_sheet(out_dir / "sheet.png", views.names, shown[1], shown[0], scores.per_view["psnr"],
+                    cfg.eval.sheet_views)
     metrics = {"split": split, "views": len(views), "resolution": [views.width, views.height],
                "background": list(cfg.data.background), "renderer": cfg.eval_render().renderer,
-               "draws": cfg.eval.draws, "points": model.scene.num_points, "psnr": _stats(p), "ssim": _stats(s),
-               "silhouette_band": _band(rgb, views),
-               "lpips": _stats(lp) | {"backbone": "alex"} if lp is not None else lp_msg,
-               "render_seconds": seconds}
+               "draws": cfg.eval.draws, "points": model.scene.num_points, **summary(scores),
+               "silhouette_band": _band(rgb, views), "render_seconds": seconds}
     write_json(out_dir / "metrics.json", metrics)
-    write_json(out_dir / "per_view.json", {"views": per_view})
-    results.info("held-out %s (%d views, %dx%d): PSNR %.2f ± %.2f dB, SSIM %.4f ± %.4f, LPIPS %s", split, len(views),
-             views.width, views.height, metrics["psnr"]["mean"], metrics["psnr"]["std"], metrics["ssim"]["mean"],
-             metrics["ssim"]["std"], metrics["lpips"] if isinstance(metrics["lpips"], str)
-             else f"{metrics['lpips']['mean']:.4f}")
+    write_json(out_dir / "per_view.json", {"protocol": scores.protocol, "views": rows})
+    write_per_view_csv(out_dir / "per_view.csv", views.names, scores)
+    results.info("held-out %s (%d views, %dx%d, %s protocol): %s", split, len(views), views.width, views.height,
+                 scores.protocol, summary_text(scores))
     log.info("metrics written to %s", out_dir / "metrics.json")
     return metrics
 
@@ -121,8 +134,8 @@ def evaluate_split(cfg: Config, ctx: RunContext, model: NeuralRenderer, views: P
 def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews], seed: int) -> dict:
     """Stage 1 alone, the point-based baseline the U-Net must beat: the run's ``geometry.ply`` (RGB
     surfels) rendered by the op (evaluation settings, the mean of ``eval.draws`` draws like the U-Net's
-    feature images) into each split of ``splits``; PSNR/SSIM written to ``eval_geometry.json`` and returned
-    as ``{split: {psnr, ssim}}``."""
+    feature images) into each split of ``splits``, scored under ``eval.protocol``; written to
+    ``eval_geometry.json`` and returned as ``{"points": N, split: {protocol, psnr, ssim, lpips}}``."""
     scene = SurfelScene.load_ply(ctx.run_dir / "geometry.ply", geometry_scene_config(cfg), device=ctx.device)
     out: dict = {"points": scene.num_points}
     for split, views in splits.items():
@@ -131,48 +144,66 @@ def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews
                              background=views.background, draws=cfg.eval.draws)
                 for s in range(0, len(views), 4)]
         rgb = torch.cat(rgbs).clamp(0, 1)
-        out[split] = {"psnr": _stats(psnr(rgb, views.images)), "ssim": _stats(ssim(rgb, views.images))}
-        results.info("stage 1 alone, %s: PSNR %.2f dB", split, out[split]["psnr"]["mean"])
+        scores = score_views(rgb, views.images, cfg.eval.protocol)
+        out[split] = summary(scores)
+        results.info("stage 1 alone, %s (%s protocol): %s", split, scores.protocol, summary_text(scores))
     write_json(ctx.run_dir / "eval_geometry.json", out)
     return out
 
 
-def orbit_cameras(train: PosedViews, frames: int) -> torch.Tensor:
-    """``[frames,4,4]`` cameras on a circle at the training cameras' mean distance and elevation,
-    looking at the point nearest to all training optical axes, up = mean camera up."""
-    V = train.viewmats.double().cpu()
-    R, t = V[:, :3, :3], V[:, :3, 3]
-    eyes = -(R.transpose(1, 2) @ t[..., None])[..., 0]
-    axes = R[:, 2, :]  # camera z (forward) in world coordinates
-    up = -R[:, 1, :].mean(0)
-    up = up / up.norm()
-    # Least-squares point closest to all optical axes.
-    P = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]
-    target = torch.linalg.lstsq(P.sum(0), (P @ eyes[..., None]).sum(0)).solution[:, 0]
-    rel = eyes - target
-    height = float((rel @ up).mean())
-    radius = float((rel - (rel @ up)[:, None] * up).norm(dim=-1).mean())
-    e1 = torch.linalg.cross(up, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-    if e1.norm() < 1e-6:
-        e1 = torch.linalg.cross(up, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(up, e1)
-    ang = torch.arange(frames, dtype=torch.float64) / frames * 2 * math.pi
-    eye = target + radius * (torch.cos(ang)[:, None] * e1 + torch.sin(ang)[:, None] * e2) + height * up
-    return look_at(eye, target.expand_as(eye), up).float()
+def path_cameras(cfg: Config, ctx: RunContext, request: RenderRequest) -> CameraPath:
+    """The cameras of ``request.path`` (:class:`nsplat.video.RenderRequest`) in the training frame, at the
+    training images' size (a camera path file: its own) or ``request.resolution``."""
+    train = load_views(cfg, "train", ctx.device)
+    frames = request.frames or cfg.eval.orbit_frames
+    if request.path == "test":
+        views = load_views(cfg, "test", ctx.device)
+        path = CameraPath(views.viewmats, views.Ks, views.width, views.height)
+    elif request.path in ("orbit", "train-smooth"):
+        V = orbit(train.viewmats, frames) if request.path == "orbit" else smooth_path(train.viewmats, frames)[0]
+        path = CameraPath(V, train.Ks[:1].expand(frames, 3, 3).contiguous(), train.width, train.height)
+    else:
+        path = read_nerfstudio_path(resolve(request.path, base=Path.cwd()))  # a command-line path: from here
+        path = dataclasses.replace(path, viewmats=to_training_frame(cfg, path.viewmats))
+    path = dataclasses.replace(path, viewmats=path.viewmats.to(ctx.device), Ks=path.Ks.to(ctx.device))
+    return path.resized(request.resolution) if request.resolution else path
 
 
-def write_orbit(cfg: Config, ctx: RunContext, model: NeuralRenderer, train: PosedViews, seed: int) -> Path:
-    """Write ``orbit.mp4``: ``model`` along a circle of cameras around the training cameras' target."""
-    viewmats = orbit_cameras(train, cfg.eval.orbit_frames).to(ctx.device)
-    count = viewmats.shape[0]
-    orbit = PosedViews(train.images[:1].expand(count, -1, -1, -1), viewmats,
-                       train.Ks[:1].expand(count, 3, 3).contiguous(), [f"orbit_{i}" for i in range(count)])
-    rgb, _ = render_split(model, orbit, seed=seed, render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
-    frames = _png(rgb)
-    H, W = frames.shape[1:3]
-    frames = np.pad(frames, ((0, 0), (0, H % 2), (0, W % 2), (0, 0)), mode="edge")  # even sizes for yuv420p
-    path = ctx.run_dir / "orbit.mp4"
-    imageio.mimwrite(path, list(frames), fps=cfg.eval.fps, macro_block_size=1)
-    results.info("orbit video (%d frames) written to %s", len(frames), path)
-    return path
+@torch.no_grad()
+def write_path_videos(cfg: Config, ctx: RunContext, model: Renderer, request: RenderRequest) -> list[Path]:
+    """Render ``model`` along ``request.path`` (evaluation settings, op seed ``eval_seed() + frame``) and write one
+    video per output to the run folder: ``<name>.mp4`` (RGB), ``<name>_depth.mp4``, ``<name>_normal.mp4``,
+    ``<name>_alpha.mp4`` (:mod:`nsplat.video`). Returns the written paths."""
+    path = path_cameras(cfg, ctx, request)
+    seed, rc, F = cfg.eval_seed(), cfg.eval_render(), len(path)
+    fps = request.fps or path.fps or cfg.eval.fps
+    pictures: dict[str, list[np.ndarray]] = {o: [] for o in request.outputs}
+    depths: list[tuple[torch.Tensor, torch.Tensor]] = []  # one colour scale for the whole video: kept until the end
+    s = model.scene
+    with tqdm(total=F, desc=f"render {request.name}", unit="frame", disable=not cfg.log.progress) as bar:
+        for i in range(0, F, 4):
+            V, K = path.viewmats[i:i + 4], path.Ks[i:i + 4]
+            if "rgb" in request.outputs:
+                rgb, _ = render_cameras(model, V, K, path.width, path.height, seed + i, render_cfg=rc,
+                                        draws=cfg.eval.draws)
+                pictures["rgb"].append(to_uint8(rgb))
+            if set(request.outputs) - {"rgb"}:
+                alpha, depth, normal = render_geometry(s.means, s.normals, s.scales, s.opacities, V, K, path.width,
+                                                       path.height, rc, seed=seed + i)
+                if "alpha" in request.outputs:
+                    pictures["alpha"].append(to_uint8(alpha.expand(-1, -1, -1, 3)))
+                if "normal" in request.outputs:
+                    pictures["normal"].append(normal_picture(normal, alpha))
+                if "depth" in request.outputs:
+                    depths.append((depth.cpu(), alpha.cpu()))
+            bar.update(V.shape[0])
+    if depths:
+        pictures["depth"] = [depth_picture(torch.cat([d for d, _ in depths]), torch.cat([a for _, a in depths]))]
+    written = []
+    for o in request.outputs:
+        name = f"{request.name}.mp4" if o == "rgb" else f"{request.name}_{o}.mp4"
+        out = write_video(np.concatenate(pictures[o]), ctx.run_dir / name, fps)
+        results.info("%s video (%s, %d frames, %dx%d, %g fps) written to %s", request.name, o, F, path.width,
+                     path.height, fps, out)
+        written.append(out)
+    return written

@@ -1,31 +1,38 @@
 """Stage 1 of the neural task: the initial surfels (visual hull of the training silhouettes, the SfM points of
-a COLMAP capture, a PLY, or random points in the bounding box, plus, for unmasked photos, the background
-sphere of :mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
+a COLMAP capture, a PLY of this project, of 3D Gaussian splatting or of a scanner, or random points in the
+bounding box or the cameras' common view, plus, for unmasked photos, the background sphere of
+:mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
 from __future__ import annotations
 
 import dataclasses
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from plyfile import PlyData
 
 from nsplat import distributed
 from nsplat import render as gateway
 from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError
 from nsplat.data.paths import resolve
+from nsplat.data.pointclouds import PlainCloud, check_ply_header, read_point_ply
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import hull_points
 from nsplat.engine import write_json
+from nsplat.errors import DataError
 from nsplat.fitting import fit
+from nsplat.gaussian_ply import is_gaussian_ply, read_gaussian_ply
 from nsplat.metrics_image import psnr
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.tasks.neural.background import sphere_background
 from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points
 from nsplat.tasks.neural.config import Config
-from nsplat.tasks.neural.sfm_init import fill_box, fill_points, sfm_surfels
+from nsplat.tasks.neural.sfm_init import fill_box, fill_points, plane_normals, sfm_surfels
 
 log = logging.getLogger(__name__)
 
@@ -38,20 +45,49 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
                        feature_activation="identity" if g.optim.shading == "sh" else "sigmoid")
 
 
+def start_kind(cfg: Config) -> str:
+    """What ``geometry.init`` starts from, ``auto`` resolved (see its doc): ``hull``, ``ply``, ``random``, ``sfm``,
+    ``capture_ply`` (the point cloud a ``transforms.json`` names) or ``view_fill`` (random points in the
+    training cameras' common view)."""
+    g = cfg.geometry
+    if g.init != "auto":
+        return g.init
+    if cfg.data.source == "colmap":
+        return "sfm"
+    if cfg.data.source == "transforms":
+        if prepare(cfg).ply is not None:
+            return "capture_ply"
+        return "hull" if cfg.data.capture.masks else "view_fill"
+    return "hull"
+
+
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
-    """Stage 1's initial surfels (``geometry.init``): the visual hull's surface voxels, the filtered SfM
-    points, a PLY, or random points in the box; with ``geometry.background.model: sphere`` the background surfels are appended.
-    Opacities start at ``geometry.init_opacity``, the SfM fill's at ``geometry.sfm.fill_opacity``."""
+    """Stage 1's initial surfels (``geometry.init``, :func:`start_kind`): the visual hull's surface voxels, the
+    filtered SfM points, a PLY, a capture's point cloud, or random points in the box or in the cameras' common
+    view; with ``geometry.background.model: sphere`` the background surfels are appended. Opacities start at
+    ``geometry.init_opacity``, the random fills' (SfM and common view) at ``geometry.sfm.fill_opacity``."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
     device = train.images.device
-    if g.init == "ply":
-        return SurfelScene.load_ply(resolve(g.ply or ""), scfg, device=device)
+    kind = start_kind(cfg)
+    if kind == "ply":
+        return _ply_scene(cfg, resolve(g.ply or ""), device, seed)
     spacing = None
-    if g.init == "sfm":
+    if kind == "sfm":
         means, normals, colours, spacing = _sfm_points(cfg, train, seed)
-    elif g.init == "random":
+    elif kind == "random":
         means, normals, colours = _random_points(g.bbox, g.max_points, seed)
+    elif kind == "capture_ply":
+        means, normals, colours = _capture_cloud(cfg, seed)
+    elif kind == "view_fill":
+        lo, hi = torch.tensor(g.bbox[:3], dtype=torch.float64), torch.tensor(g.bbox[3:], dtype=torch.float64)
+        try:
+            means, normals, colours = fill_points(lo, hi, train.to("cpu"), g.max_points, g.sfm.fill_seen,
+                                                  torch.Generator().manual_seed(seed))
+        except ValueError as exc:
+            raise ConfigError(f"geometry.init: auto: {exc}") from exc
+        log.info("common-view start: %d random points in the box %s seen by %.0f%% of the training views",
+                 g.max_points, list(g.bbox), 100 * g.sfm.fill_seen)
     else:
         hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold,
                          dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
@@ -59,8 +95,10 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
         means, normals, colours = hp.means, hp.normals, hp.colours
     scales = None
     opacities = torch.full((means.shape[0],), g.init_opacity)
-    if g.init == "sfm" and g.sfm.fill > 0:                      # the fill rows end the SfM part
+    if kind == "sfm" and g.sfm.fill > 0:                        # the fill rows end the SfM part
         opacities[means.shape[0] - g.sfm.fill:] = g.sfm.fill_opacity
+    if kind == "view_fill":
+        opacities[:] = g.sfm.fill_opacity
     if g.background.model == "sphere":
         centre, radius = background_sphere(cfg)
         bg = sphere_background(train.to("cpu"), centre, radius, g.background.points)
@@ -78,6 +116,89 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     return SurfelScene.from_points(scfg, means, normals, scales=None if scales is None else scales.to(device),
                                    opacities=opacities.to(device) if g.opacity is None else None,
                                    features=features, scale_factor=g.scale_factor)
+
+
+def _ply_scene(cfg: Config, path: Path, device: torch.device, seed: int) -> SurfelScene:
+    """Stage 1's surfels from the PLY at ``path``, in whichever layout it has:
+
+    * this project's own (``f_0 …``: a run's ``geometry.ply``, :meth:`SurfelScene.save_ply`): read as stored;
+    * 3D Gaussian splatting's (``f_dc_0 …``, :mod:`nsplat.gaussian_ply`; e.g. ``export --format 3dgs``):
+      positions, normals, tangent std-devs, opacities and the colour up to ``geometry.sh_degree`` (the mean
+      colour without view dependence when ``geometry.optim.shading`` is ``none``);
+    * any other point cloud with ``x y z`` (a scanner's): its normals or, without them, plane fits of the
+      ``geometry.sfm.k`` nearest neighbours; its colours or grey; std-devs from the point spacing
+      (``geometry.scale_factor``), opacity ``geometry.init_opacity``.
+
+    Of a 3DGS file or a plain cloud, at most ``geometry.max_points`` points are kept (a random subset drawn
+    with ``seed``).
+    """
+    g, scfg = cfg.geometry, geometry_scene_config(cfg)
+    if not path.is_file():
+        raise FileNotFoundError(f"geometry.ply: no PLY file at {path}")
+    check_ply_header(path)
+    try:
+        names = set(PlyData.read(str(path))["vertex"].data.dtype.names)
+    except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
+        raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
+    if "f_0" in names and not is_gaussian_ply(names):
+        return SurfelScene.load_ply(path, scfg, device=device)
+    gen = torch.Generator().manual_seed(seed)
+    if is_gaussian_ply(names):
+        gs = read_gaussian_ply(path)
+        keep = _subset(gs["means"].shape[0], g.max_points, gen)
+        channels = scfg.channels  # RGB, or SH up to geometry.sh_degree: truncate or pad the file's bands
+        features = torch.zeros(len(keep), channels, dtype=torch.float64)
+        features[:, :min(channels, gs["features"].shape[1])] = gs["features"][keep][:, :channels]
+        if g.optim.shading == "none":
+            features = features.clamp(0.0, 1.0)
+        log.info("3DGS PLY: %d of %d Gaussians as surfels (file SH degree %d, %d colour channels)", len(keep),
+                 gs["means"].shape[0], gs["degree"], channels)
+        rows = {k: gs[k][keep].float().to(device) for k in ("means", "normals", "scales", "opacities")}
+        return SurfelScene.from_points(scfg, rows["means"], rows["normals"], scales=rows["scales"].clamp_min(1e-9),
+                                       opacities=rows["opacities"] if g.opacity is None else None,
+                                       features=features.float().to(device))
+    means, normals, colours = _cloud_points(cfg, read_point_ply(path), gen, path)
+    features = torch.cat([colours, colours.new_zeros(colours.shape[0], scfg.channels - 3)], 1)
+    return SurfelScene.from_points(scfg, means.to(device), normals.to(device),
+                                   opacities=torch.full((means.shape[0],), g.init_opacity, device=device)
+                                   if g.opacity is None else None,
+                                   features=features.to(device), scale_factor=g.scale_factor)
+
+
+def _cloud_points(cfg: Config, cloud: PlainCloud, gen: torch.Generator, where: Path) -> tuple[torch.Tensor, ...]:
+    """``(means, normals, colours)`` float32 of at most ``geometry.max_points`` points of ``cloud`` (read from
+    ``where``; a random subset drawn with ``gen``): its normals or plane fits of the ``geometry.sfm.k``
+    nearest neighbours, its colours (clamped to [0.02, 0.98]) or grey."""
+    g = cfg.geometry
+    keep = _subset(cloud.points.shape[0], g.max_points, gen)
+    means = cloud.points[keep].float()
+    if cloud.normals is None and len(keep) < 3:
+        raise DataError(f"{where}: a point cloud without normals needs at least 3 points for plane fits, "
+                        f"got {len(keep)}")
+    normals = (torch.from_numpy(plane_normals(means.double().numpy(), min(g.sfm.k, len(keep) - 1))).float()
+               if cloud.normals is None else cloud.normals[keep].float())
+    colours = torch.full_like(means, 0.5) if cloud.colours is None else cloud.colours[keep].float()
+    log.info("point cloud: %d of %d points (normals %s, colours %s)", len(keep), cloud.points.shape[0],
+             "from the file" if cloud.normals is not None else "from plane fits",
+             "from the file" if cloud.colours is not None else "grey")
+    return means, normals, colours.clamp(0.02, 0.98)
+
+
+def _capture_cloud(cfg: Config, seed: int) -> tuple[torch.Tensor, ...]:
+    """``(means, normals, colours)`` of the point cloud the capture's ``transforms.json`` names
+    (``ply_file_path``, in the file's world), moved into the training frame (:func:`_cloud_points`)."""
+    prep = prepare(cfg)
+    cloud = read_point_ply(prep.ply)
+    cloud = dataclasses.replace(cloud, points=prep.scale * (cloud.points - prep.centre))
+    log.info("start: the point cloud of %s", prep.ply)
+    return _cloud_points(cfg, cloud, torch.Generator().manual_seed(seed), prep.ply)
+
+
+def _subset(count: int, limit: int, gen: torch.Generator) -> torch.Tensor:
+    """All of ``count`` rows, or a sorted random subset of ``limit`` of them."""
+    if count <= limit:
+        return torch.arange(count)
+    return torch.randperm(count, generator=gen)[:limit].sort().values
 
 
 def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor, ...]:

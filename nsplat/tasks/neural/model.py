@@ -1,6 +1,7 @@
 """The neural task's stage-2 model: the points with learned features (:func:`neural_scene_from` the stage-1
 surfels), :class:`NeuralRenderer` (points → op → U-Net → RGB), its conditional PatchGAN, the trained model
-from a checkpoint (:func:`load_model`) and the renderer as a :class:`~nsplat.view_model.ViewModel`.
+from a checkpoint (:func:`load_model`; a point-only run's stage 1 as a :class:`PointRenderer`) and the
+renderer as a :class:`~nsplat.view_model.ViewModel`.
 """
 from __future__ import annotations
 
@@ -15,11 +16,12 @@ from nsplat.checkpoint import load_checkpoint
 from nsplat.engine import checkpoint_rows
 from nsplat.models import PatchDiscriminator, UNet
 from nsplat.render import DRAW_STRIDE
-from nsplat.runctx import RunContext
+from nsplat.runctx import RunContext, RunFolderError
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.sh import view_colour
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.geometry import geometry_scene_config
 from nsplat.view_model import TrainingCameras, ViewModel
 
 
@@ -190,9 +192,46 @@ def neural_view(model: NeuralRenderer, cameras: TrainingCameras | None, seed: in
                      cameras=cameras, task="neural", seed=seed)
 
 
-def load_model(cfg: Config, ctx: RunContext) -> NeuralRenderer:
-    """The trained renderer from the run's latest checkpoint."""
+class PointRenderer(nn.Module):
+    """The point-only model (``neural.steps: 0``): stage 1's surfels with their colour (RGB, or SH seen from
+    each camera) splatted by the op, behind :class:`NeuralRenderer`'s interface for evaluation and videos.
+
+    Attributes:
+        scene: the stage-1 :class:`SurfelScene` (``geometry.ply``). shading: ``geometry.optim.shading``.
+    """
+
+    def __init__(self, scene: SurfelScene, cfg: Config) -> None:
+        super().__init__()
+        self.scene = scene
+        self.render_cfg = cfg.render
+        self.shading = cfg.geometry.optim.shading
+        bg = torch.tensor(cfg.data.background, dtype=scene.means.dtype, device=scene.means.device)
+        self.register_buffer("background", bg, persistent=False)
+
+    def forward(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, seed: int,
+                draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(rgb [B,3,H,W], rgb [B,3,H,W])`` of cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (camera ``b`` with
+        op seed ``seed + b`` where the colour is per camera; the mean of ``draws`` op draws), as
+        :func:`nsplat.render.render_views` renders stage 1 alone; the image is also the "feature image"."""
+        img = gateway.render_views(self.scene, viewmats, Ks, width, height, self.render_cfg, seed=seed,
+                                   shading=self.shading, background=self.background, draws=draws)
+        rgb = img.permute(0, 3, 1, 2).contiguous()
+        return rgb, rgb
+
+
+#: What evaluation and videos render: the stage-2 model or, for a point-only run, stage 1.
+Renderer = NeuralRenderer | PointRenderer
+
+
+def load_model(cfg: Config, ctx: RunContext) -> Renderer:
+    """The trained renderer from the run's latest checkpoint; with ``neural.steps: 0`` the point-only model
+    from the run's ``geometry.ply`` (:class:`PointRenderer`)."""
     cfg = with_capture_render(cfg)
+    if cfg.neural.steps == 0:
+        path = ctx.run_dir / "geometry.ply"
+        if not path.is_file():
+            raise RunFolderError(f"--run {ctx.run_dir}: no geometry.ply yet (stage 1 has not finished)")
+        return PointRenderer(SurfelScene.load_ply(path, geometry_scene_config(cfg), device=ctx.device), cfg)
     payload = load_checkpoint(ctx.run_dir, map_location="cpu")
     points = checkpoint_rows(payload, "model", "scene._means")
     model = NeuralRenderer(SurfelScene(neural_scene_config(cfg), points, device=ctx.device), cfg).to(ctx.device)

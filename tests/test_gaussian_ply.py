@@ -1,0 +1,161 @@
+"""3D Gaussian splatting's PLY (:mod:`nsplat.gaussian_ply`): the colour conversion against 3DGS's own SH
+evaluation, ``export --format 3dgs`` of a trained point-only run read back with plyfile, ``geometry.init: ply``
+from that file rendering the same image (the dense oracle and the sampled op, the same seed: every pixel within
+1e-6 of the original surfels' render, float32 rounding), another tool's Gaussians (rotated in their plane) and a
+scanner's plain point cloud."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from plyfile import PlyData, PlyElement
+from scipy.spatial.transform import Rotation
+
+from nsplat.cli import main
+from nsplat.config import load_config
+from nsplat.gaussian_ply import FLAT, SH_C0, read_gaussian_ply, to_gaussian_sh
+from nsplat.render import render_views
+from nsplat.scene import SurfelScene
+from nsplat.sh import view_colour
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.geometry import geometry_scene_config, initial_geometry
+from tests.test_neural import _tiny
+
+#: The real SH constants of 3DGS's ``utils/sh_utils.py`` (bands 1-3), with its signs.
+C1 = 0.4886025119029199
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+      1.445305721320277, -0.5900435899266435)
+
+
+def _eval_3dgs(f_dc: np.ndarray, f_rest: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """RGB ``[N,3]`` as 3DGS computes it from a file's ``f_dc [N,3]``, ``f_rest [N,45]`` for unit directions ``d``."""
+    sh = np.concatenate([f_dc[:, None, :], f_rest.reshape(-1, 3, 15).transpose(0, 2, 1)], 1)  # [N,16,3]
+    x, y, z = (d[:, i:i + 1] for i in range(3))
+    xx, yy, zz = x * x, y * y, z * z
+    basis = [SH_C0 + 0 * x, -C1 * y, C1 * z, -C1 * x, C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy),
+             C2[3] * x * z, C2[4] * (xx - yy), C3[0] * y * (3 * xx - yy), C3[1] * x * y * z,
+             C3[2] * y * (4 * zz - xx - yy), C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy),
+             C3[5] * z * (xx - yy), C3[6] * x * (xx - 3 * yy)]
+    return np.maximum(sum(b * sh[:, j] for j, b in enumerate(basis)) + 0.5, 0.0)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_colour_converts_exactly_to_3dgs_sh(degree):
+    rng = np.random.default_rng(degree)
+    N = 64
+    features = rng.normal(0.4, 0.3, (N, 3 * (degree + 1) ** 2))
+    means = rng.normal(size=(N, 3))
+    V = torch.eye(4, dtype=torch.float64)
+    V[:3, :3] = torch.from_numpy(Rotation.random(random_state=1).as_matrix())
+    V[:3, 3] = torch.tensor([0.2, -0.1, 4.0])
+    ours = view_colour(torch.from_numpy(features), torch.from_numpy(means), V).numpy()
+    centre = -(V[:3, :3].T @ V[:3, 3]).numpy()
+    d = (means - centre) / np.linalg.norm(means - centre, axis=1, keepdims=True)
+    f_dc, f_rest = to_gaussian_sh(features)
+    assert f_rest.shape == (N, 45) and not f_rest.reshape(N, 3, 15)[:, :, (degree + 1) ** 2 - 1:].any()
+    np.testing.assert_allclose(_eval_3dgs(f_dc, f_rest, d), ours, atol=1e-12)
+
+
+def _run_point_only(tmp_path: Path) -> Path:
+    raw = _tiny(tmp_path / "cache", steps=0)
+    raw["geometry"] = {"grid": 24, "sh_degree": 2, "opacity": None,
+                       "optim": {"epochs": 1, "batch": 3, "reposition": {"enabled": False}, "shading": "sh"}}
+    raw["eval"]["geometry"] = False
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(raw))
+    run = tmp_path / "run"
+    assert main(["--config", str(tmp_path / "c.yaml"), "--run", str(run)]) == 0
+    return run
+
+
+def test_export_3dgs_reads_back_and_restarts_the_same_render(tmp_path, capsys):
+    run = _run_point_only(tmp_path)
+    assert main(["export", "--run", str(run), "--format", "3dgs"]) == 0
+    path = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    assert path == run / "export" / "point_cloud.ply"
+    cfg = load_config(Config, yaml.safe_load((run / "config.yaml").read_text()))
+    scene = SurfelScene.load_ply(run / "geometry.ply", geometry_scene_config(cfg))
+
+    ply = PlyData.read(str(path))
+    assert ply.elements[0].name == "vertex" and ply["vertex"].count == scene.num_points
+    names = [p.name for p in ply["vertex"].properties]
+    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                     + [f"f_rest_{i}" for i in range(45)] + ["opacity", "scale_0", "scale_1", "scale_2"]
+                     + [f"rot_{i}" for i in range(4)])
+    v = ply["vertex"]
+    quat = np.stack([v[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-6)
+    s = scene.scales.detach().numpy()
+    np.testing.assert_allclose(np.stack([v["scale_0"], v["scale_1"]], 1), np.log(s), atol=1e-5)
+    np.testing.assert_allclose(v["scale_2"], np.log(FLAT * s.max(1)), atol=1e-5)
+    np.testing.assert_allclose(1 / (1 + np.exp(-v["opacity"])), scene.opacities.detach().numpy(), atol=1e-6)
+    R = Rotation.from_quat(quat, scalar_first=True).as_matrix()
+    np.testing.assert_allclose(R[:, :, 2], scene.normals.detach().numpy(), atol=1e-6)  # third axis = normal
+    assert not np.stack([v[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15)[:, :, 8:].any()  # degree 2
+
+    raw = yaml.safe_load((run / "config.yaml").read_text())
+    raw["geometry"].update(init="ply", ply=str(path))
+    restart = initial_geometry(load_config(Config, raw), load_views(cfg, "train", torch.device("cpu")), seed=0)
+    assert restart.num_points == scene.num_points
+    views = load_views(cfg, "test", torch.device("cpu"))
+    for renderer in ("dense", "splat"):
+        rc = dataclasses.replace(cfg.render, renderer=renderer)
+        with torch.no_grad():
+            a, b = (render_views(sc, views.viewmats, views.Ks, views.width, views.height, rc, seed=3, shading="sh",
+                                 background=views.background) for sc in (scene, restart))
+        err = (a - b).abs()
+        assert float(err.max()) < 1e-6, (renderer, float(err.max()))  # measured: 1.8e-7 dense, 2.4e-7 sampled
+
+
+def test_another_tools_gaussians_become_surfels_with_their_smallest_axis_as_normal(tmp_path):
+    rng = np.random.default_rng(0)
+    N = 20
+    R = Rotation.random(N, random_state=2)
+    log_s = np.log(rng.uniform(0.02, 0.1, N))
+    flat = rng.integers(0, 3, N)  # the thin axis anywhere; in-plane isotropic
+    scales = np.repeat(log_s[:, None], 3, 1)
+    scales[np.arange(N), flat] = np.log(1e-4)
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3"]
+    arr = np.zeros(N, dtype=[(n, "<f4") for n in names])
+    quat = R.as_quat(scalar_first=True) * rng.uniform(0.5, 2.0, (N, 1))  # unnormalised, as 3DGS stores them
+    for i in range(4):
+        arr[f"rot_{i}"] = quat[:, i]
+    for i in range(3):
+        arr[f"scale_{i}"] = scales[:, i]
+    arr["opacity"] = 2.0
+    path = tmp_path / "other.ply"
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(path))
+    g = read_gaussian_ply(path)
+    assert g["degree"] == 0 and g["features"].shape == (N, 3)
+    axis = R.as_matrix()[np.arange(N), :, flat]
+    np.testing.assert_allclose(np.abs((g["normals"].numpy() * axis).sum(1)), 1.0, atol=1e-6)
+    np.testing.assert_allclose(g["scales"].numpy(), np.exp(log_s)[:, None].repeat(2, 1), rtol=1e-5)
+    np.testing.assert_allclose(g["opacities"].numpy(), 1 / (1 + math.exp(-2.0)), rtol=1e-6)
+    np.testing.assert_allclose(g["features"].numpy(), 0.5, atol=1e-7)
+
+
+def test_a_scanners_point_cloud_starts_stage_one(tmp_path):
+    rng = np.random.default_rng(0)
+    N = 400
+    xy = rng.uniform(-0.5, 0.5, (N, 2))
+    arr = np.zeros(N, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    arr["x"], arr["y"], arr["z"] = xy[:, 0], xy[:, 1], 0.25  # a plane z = 0.25, no normals in the file
+    arr["red"], arr["green"], arr["blue"] = 255, 128, 0
+    path = tmp_path / "scan.ply"
+    PlyData([PlyElement.describe(arr, "vertex")], text=True).write(str(path))
+    raw = _tiny(tmp_path / "cache")
+    raw["geometry"].update(init="ply", ply=str(path), max_points=300, opacity=None)
+    cfg = load_config(Config, raw)
+    scene = initial_geometry(cfg, load_views(cfg, "train", torch.device("cpu")), seed=0)
+    assert scene.num_points == 300
+    np.testing.assert_allclose(scene.normals[:, 2].abs().detach().numpy(), 1.0, atol=1e-6)  # plane fits
+    np.testing.assert_allclose(scene.features.detach().numpy(), [[0.98, 128 / 255, 0.02]] * 300, atol=1e-5)
+    np.testing.assert_allclose(scene.opacities.detach().numpy(), cfg.geometry.init_opacity, atol=1e-6)
+    assert bool((scene.scales > 0).all()) and float(scene.means.detach()[:, 2].sub(0.25).abs().max()) < 1e-6
