@@ -33,14 +33,14 @@ def build(cfg: Config, scene: SurfelScene, seed: int = 0) -> Trainables:
     model = NeuralRenderer(scene, cfg).to(device)
     groups = scene.param_groups(n.learn) + [{"params": list(model.unet.parameters()), "lr": n.lr, "name": "unet"}]
     gamma = n.lr_final ** (1.0 / max(1, n.steps))
-    opt_g = torch.optim.Adam(groups, betas=tuple(n.betas), fused=True)
+    opt_g = torch.optim.Adam(groups, betas=tuple(n.betas))
     t = Trainables(modules={"model": model}, optimizers={"g": opt_g},
                    schedulers={"g": torch.optim.lr_scheduler.ExponentialLR(opt_g, gamma)},
                    generator=torch.Generator().manual_seed(seed), extra={"seed": seed, "history": []})
     disc = build_discriminator(cfg, model.cond_channels)
     if disc is not None:
         t.modules["disc"] = disc.to(device)
-        opt_d = torch.optim.Adam(disc.parameters(), lr=n.gan.lr, betas=tuple(n.gan.betas), fused=True)
+        opt_d = torch.optim.Adam(disc.parameters(), lr=n.gan.lr, betas=tuple(n.gan.betas))
         t.optimizers["d"] = opt_d
         # The discriminator trains from n.gan_start_step() on; its rate decays over those steps only.
         gamma_d = n.lr_final ** (1.0 / max(1, n.steps - n.gan_start_step()))
