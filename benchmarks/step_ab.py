@@ -25,8 +25,6 @@ import tarfile
 import tempfile
 from pathlib import Path
 
-import torch
-
 from benchmarks.common import REPO, markdown, write_result
 from nsplat.ops.build import build_dir
 
