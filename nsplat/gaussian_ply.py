@@ -39,7 +39,7 @@ import torch
 from plyfile import PlyData, PlyElement
 from scipy.spatial.transform import Rotation
 
-from nsplat.data.pointclouds import check_ply_header
+from nsplat.data.pointclouds import read_vertex_element
 from nsplat.errors import DataError
 from nsplat.ops.projection import tangent_frame
 from nsplat.sh import MAX_VIEW_DEGREE, view_channels
@@ -139,15 +139,7 @@ def read_gaussian_ply(path: str | Path) -> dict[str, torch.Tensor | int]:
         ``features [N, 3·(L+1)²]`` (this project's colour convention) and ``degree`` ``L`` (from the number of
         ``f_rest_*`` properties). Bad files raise a one-line :class:`~nsplat.errors.DataError` naming them.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no PLY file at {path}")
-    check_ply_header(path)
-    try:
-        v = PlyData.read(str(path))["vertex"]
-    except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
-        raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
-    names = set(v.data.dtype.names)
+    path, v, names = read_vertex_element(path)
     missing = [k for k in REQUIRED if k not in names]
     if missing:
         raise DataError(f"{path}: not a 3D Gaussian splatting PLY: missing properties {missing}")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData
+from plyfile import PlyData, PlyElement
 
 from nsplat.data.paths import data_root
 from nsplat.errors import DataError
@@ -136,9 +136,9 @@ class PlainCloud:
     colours: torch.Tensor | None
 
 
-def read_point_ply(path: str | Path) -> PlainCloud:
-    """Read ``x y z`` and, where present, ``nx ny nz`` and ``red green blue`` (8- or 16-bit integers, or floats in
-    [0, 1]) from a PLY's ``vertex`` element. Bad files raise a one-line :class:`DataError` naming them."""
+def read_vertex_element(path: str | Path) -> tuple[Path, PlyElement, set[str]]:
+    """The ``vertex`` element of the PLY at ``path`` and its property names, after the header check; a missing
+    or unreadable file raises a one-line error naming it."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no PLY file at {path}")
@@ -147,7 +147,13 @@ def read_point_ply(path: str | Path) -> PlainCloud:
         v = PlyData.read(str(path))["vertex"]
     except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
         raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
-    names = set(v.data.dtype.names)
+    return path, v, set(v.data.dtype.names)
+
+
+def read_point_ply(path: str | Path) -> PlainCloud:
+    """Read ``x y z`` and, where present, ``nx ny nz`` and ``red green blue`` (8- or 16-bit integers, or floats in
+    [0, 1]) from a PLY's ``vertex`` element. Bad files raise a one-line :class:`DataError` naming them."""
+    path, v, names = read_vertex_element(path)
     if not {"x", "y", "z"} <= names:
         raise DataError(f"{path}: missing vertex properties x y z")
     if v.count == 0:
