@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from nsplat.config import require, require_fields
-from nsplat.data.pointclouds import check_ply_header
+from nsplat.data.pointclouds import read_vertex_element
 from nsplat.errors import DataError
 from nsplat.points import gather_rows, reset_rows, select_rows
 
@@ -331,15 +331,7 @@ class SurfelScene(nn.Module):
     def load_ply(cls, path: str | Path, cfg: SceneConfig, dtype: torch.dtype = torch.float32,
                  device: str | torch.device = "cpu") -> "SurfelScene":
         """Read a PLY written by :meth:`save_ply`; every attribute ``cfg`` allocates must be present."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"path: no PLY file at {path}")
-        check_ply_header(path)
-        try:
-            vertex = PlyData.read(str(path))["vertex"]
-        except Exception as exc:  # noqa: BLE001 - plyfile's parse errors do not name the file
-            raise DataError(f"{path}: not a readable PLY file with a 'vertex' element: {exc}") from exc
-        names = set(vertex.data.dtype.names)
+        path, vertex, names = read_vertex_element(path)
         if vertex.count == 0:
             raise DataError(f"{path}: the PLY has zero vertices")
 
