@@ -20,7 +20,7 @@ from .library import _entries_by_point, _entries_by_point_sorted  # noqa: F401 -
 from .build import backend
 from .library import composite_forward_op, sample_op
 from .output import SplatOutput
-from .projection import Projected, project
+from .projection import Projected, project, project_checked
 from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_allocation, check_backface_cull,
                          check_composite_call, check_deterministic, check_devices, check_geometry, check_sample_call,
                          check_sampling, check_settings, inclusion_for, native_estimator)
@@ -98,6 +98,12 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
         raise ValueError(f"inclusion: expected one of {INCLUSIONS}, got {inclusion!r}")
     check_sample_call(proj, Ks, width, height, samples=samples, eps=eps, seed=seed, hermite_order=hermite_order,
                       hermite_tol=hermite_tol, stratified=stratified)
+    return _sample_op(proj, Ks, width, height, samples, eps, seed, hermite_order, hermite_tol, inclusion, stratified)
+
+
+def _sample_op(proj: Projected, Ks: torch.Tensor, width: int, height: int, samples: int, eps: float, seed: int,
+               hermite_order: int, hermite_tol: float, inclusion: str, stratified: bool) -> tuple[torch.Tensor, ...]:
+    """The native sampler on validated arguments (:func:`sample` without its checks)."""
     fields = (proj.means2d, proj.conics, proj.amps, proj.sigma2, proj.normals_cam, proj.plane_offsets, proj.depths)
     return sample_op(*(t.detach() for t in fields), Ks.detach(), _seed_tensor(seed), width, height, samples,
                      float(eps), hermite_order, float(hermite_tol), INCLUSIONS.index(inclusion), bool(stratified))
@@ -145,6 +151,13 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     if probs.shape != indices.shape or probs.dtype != proj.means2d.dtype:
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {proj.means2d.dtype}, "
                          f"got {list(probs.shape)} {probs.dtype}")
+    return _composite_op(proj, features, Ks, indices, probs, background, composite, estimator, deterministic)
+
+
+def _composite_op(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, indices: torch.Tensor,
+                  probs: torch.Tensor, background: torch.Tensor | None, composite: str, estimator: str,
+                  deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The native compositor on validated arguments (:func:`composite_sample` without its checks)."""
     bg = background if background is not None else features.new_zeros(features.shape[1])
     image, alpha, depth = composite_forward_op(proj.means2d, proj.conics, proj.amps, proj.normals_cam,
                                                proj.plane_offsets, proj.depths, Ks.detach(), features, bg,
@@ -222,13 +235,13 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
     for stage in ("sample", "composite"):  # before any work: the projection alone can take minutes
         check_allocation(B=B, N=N, C=C, width=width, height=height, samples=samples, dtype=means.dtype,
                          device=means.device, what=stage)
-    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
-                   backface_cull=backface_cull)
-    indices, probs, total, work = sample(proj, Ks, width, height, samples=samples, eps=eps, seed=seed,
-                                         hermite_order=hermite_order, hermite_tol=hermite_tol,
-                                         inclusion=inclusion_for(estimator), stratified=stratified)
-    image, alpha, depth = composite_sample(proj, features, Ks, indices, probs, background=background,
-                                                 composite=composite, estimator=estimator,
-                                                 deterministic=deterministic)
+    # the inputs are checked above; the stages' own checks would re-validate values this op produced
+    proj = project_checked(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                           backface_cull=backface_cull)
+    with torch.no_grad():
+        indices, probs, total, work = _sample_op(proj, Ks, width, height, samples, eps, seed, hermite_order,
+                                                 hermite_tol, inclusion_for(estimator), stratified)
+    image, alpha, depth = _composite_op(proj, features, Ks, indices, probs, background, composite, estimator,
+                                        deterministic)
     return SplatOutput(image=image, alpha=alpha, depth=depth, total=total, indices=indices, probs=probs,
                        work=work)

@@ -97,6 +97,15 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     """
     check_geometry(means, normals, scales, opacities, None, viewmats, Ks)
     check_range(near=near, far=far, lowpass=lowpass)
+    return project_checked(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                           backface_cull=backface_cull)
+
+
+def project_checked(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                    viewmats: torch.Tensor, Ks: torch.Tensor, *, near: float, far: float,
+                    lowpass: float, backface_cull: bool = False) -> Projected:
+    """:func:`project` on arguments the caller has already validated (``nsplat.ops.splat`` does): the checks of
+    the inputs are skipped, the float hazards of the computation (``check_projection_numerics``) still raise."""
     # Element-wise arithmetic only, on [B,N] operands made explicit by expand_fixed: no matmul, einsum
     # or sum whose rounding would depend on the thread count or the CPU's vector width (fixed_order.py).
     B, N = viewmats.shape[0], means.shape[0]
