@@ -6,6 +6,8 @@ tracing, autograd for the compositor):
     nsplat::sample              per-pixel SPS sample (no gradient)
     nsplat::composite_forward   compositing of a given sample; differentiable (autograd registered)
     nsplat::composite_backward  the estimator's backward of ``composite_forward`` (its own gradient is an error)
+    nsplat::project             the EWA projection (CPU kernel; differentiable, autograd registered)
+    nsplat::project_backward    its hand-derived backward
 
 Because these are custom ops, ``torch.compile`` traces a model containing :class:`nsplat.ops.Splatter`
 without graph breaks (the fake kernels give the output shapes), and autograd / AOTAutograd see one node
@@ -25,7 +27,8 @@ from torch import Tensor
 
 from .build import backend
 
-__all__ = ["Native", "native", "sample_op", "composite_forward_op", "composite_backward_op"]
+__all__ = ["Native", "native", "sample_op", "composite_forward_op", "composite_backward_op", "project_op",
+           "project_backward_op"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,6 +180,73 @@ def _no_double_backward(ctx, *grads):  # noqa: ANN001
 
 
 torch.library.register_autograd("nsplat::composite_backward", _no_double_backward)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The projection (CPU kernel; ops/projection.py::project_torch is its reference and the other devices' path)
+
+
+@torch.library.custom_op("nsplat::project", mutates_args=(), device_types=("cpu",))
+def project_op(means: Tensor, normals: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor,
+               near: float, far: float, lowpass: float,
+               backface_cull: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Project surfels ``[N]`` into cameras ``[B]`` (the model of :mod:`nsplat.ops.projection`).
+
+    Returns ``means2d [B,N,2]``, ``conics [B,N,3]``, ``amps``, ``normals_cam [B,N,3]``, ``plane_offsets``,
+    ``depths``, ``sigma2``, ``valid`` (bool) and ``hazard`` (int8: 1 a visible splat overflows the dtype, 2 its
+    screen covariance's determinant lies in (0, 1e-20) px⁴), ``[B,N]`` unless noted."""
+    out = native("cpu").module.project_forward(*_contiguous(means, normals, scales, opacities, viewmats, Ks),
+                                                near, far, lowpass, backface_cull)
+    return tuple(out)
+
+
+@project_op.register_fake
+def _(means, normals, scales, opacities, viewmats, Ks, near, far, lowpass, backface_cull):  # noqa: ANN001
+    B, N = viewmats.shape[0], means.shape[0]
+    e = means.new_empty
+    return (e((B, N, 2)), e((B, N, 3)), e((B, N)), e((B, N, 3)), e((B, N)), e((B, N)), e((B, N)),
+            e((B, N), dtype=torch.bool), e((B, N), dtype=torch.int8))
+
+
+@torch.library.custom_op("nsplat::project_backward", mutates_args=(), device_types=("cpu",))
+def project_backward_op(means: Tensor, normals: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
+                        Ks: Tensor, near: float, far: float, lowpass: float, backface_cull: bool, g_means2d: Tensor,
+                        g_conics: Tensor, g_amps: Tensor, g_normals_cam: Tensor, g_plane_offsets: Tensor,
+                        g_depths: Tensor, g_sigma2: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Gradients of :func:`project_op` w.r.t. ``means, normals, scales, opacities, viewmats, Ks`` given those of
+    its first seven outputs. Per point summed over the cameras in order, per camera over fixed blocks of points:
+    bitwise identical for any thread count."""
+    args = _contiguous(means, normals, scales, opacities, viewmats, Ks)
+    grads = _contiguous(g_means2d, g_conics, g_amps, g_normals_cam, g_plane_offsets, g_depths, g_sigma2)
+    return tuple(native("cpu").module.project_backward(*args, near, far, lowpass, backface_cull, *grads))
+
+
+@project_backward_op.register_fake
+def _(means, normals, scales, opacities, viewmats, Ks, near, far, lowpass, backface_cull, *grads):  # noqa: ANN001
+    return tuple(t.new_empty(t.shape) for t in (means, normals, scales, opacities, viewmats, Ks))
+
+
+def _setup_project(ctx, inputs, output) -> None:  # noqa: ANN001 - torch.library autograd signature
+    means, normals, scales, opacities, viewmats, Ks, near, far, lowpass, backface_cull = inputs
+    ctx.save_for_backward(means, normals, scales, opacities, viewmats, Ks)
+    ctx.settings = (near, far, lowpass, backface_cull)
+    ctx.shapes = [o.shape for o in output[:7]]
+
+
+def _backward_project(ctx, *grads):  # noqa: ANN001
+    means = ctx.saved_tensors[0]
+    g = [gi if gi is not None else means.new_zeros(shape) for gi, shape in zip(grads[:7], ctx.shapes)]
+    out = project_backward_op(*ctx.saved_tensors, *ctx.settings, *g)
+    return (*out, None, None, None, None)
+
+
+torch.library.register_autograd("nsplat::project", _backward_project, setup_context=_setup_project)
+def _no_double_backward_project(ctx, *grads):  # noqa: ANN001
+    raise RuntimeError("nsplat::project_backward: double backward through the native projection is not supported; "
+                       "nsplat.ops.projection.project_torch (pure PyTorch, same model) supports it.")
+
+
+torch.library.register_autograd("nsplat::project_backward", _no_double_backward_project)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -20,7 +20,8 @@ import dataclasses
 import torch
 
 from .fixed_order import expand_fixed
-from .validation import check_geometry, check_projection_numerics, check_range
+from .library import project_op
+from .validation import TINY_DET_F32, check_geometry, check_projection_numerics, check_range, values_checked
 
 ALPHA_MAX = 0.99
 #: A ray whose cosine with a splat's plane normal is below this uses the splat's centre depth.
@@ -105,7 +106,26 @@ def project_checked(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
                     viewmats: torch.Tensor, Ks: torch.Tensor, *, near: float, far: float,
                     lowpass: float, backface_cull: bool = False) -> Projected:
     """:func:`project` on arguments the caller has already validated (``nsplat.ops.splat`` does): the checks of
-    the inputs are skipped, the float hazards of the computation (``check_projection_numerics``) still raise."""
+    the inputs are skipped, the float hazards of the computation (``check_projection_numerics``) still raise.
+    On the CPU the native kernel (``nsplat::project``) computes it, elsewhere :func:`project_torch`."""
+    if means.device.type != "cpu":
+        return project_torch(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                             backface_cull=backface_cull)
+    m2, conics, amps, ncam, off, depths, sigma2, valid, hazard = project_op(
+        means, normals, scales, opacities, viewmats, Ks, float(near), float(far), float(lowpass), bool(backface_cull))
+    if values_checked():
+        grads = torch.is_grad_enabled() and any(x.requires_grad for x in (means, normals, scales, viewmats, Ks))
+        check_projection_numerics(huge=hazard == 1, tiny=hazard == 2, dtype=means.dtype, lowpass=float(lowpass),
+                                  differentiable=grads)
+    return Projected(means2d=m2, conics=conics, amps=amps, normals_cam=ncam, plane_offsets=off, depths=depths,
+                     sigma2=sigma2, valid=valid)
+
+
+def project_torch(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                  viewmats: torch.Tensor, Ks: torch.Tensor, *, near: float, far: float,
+                  lowpass: float, backface_cull: bool = False) -> Projected:
+    """The projection in pure PyTorch (autograd; any device): the reference of the native CPU kernel and the
+    path of the other devices. Arguments as :func:`project`, unchecked."""
     # Element-wise arithmetic only, on [B,N] operands made explicit by expand_fixed: no matmul, einsum
     # or sum whose rounding would depend on the thread count or the CPU's vector width (fixed_order.py).
     B, N = viewmats.shape[0], means.shape[0]
@@ -153,9 +173,12 @@ def project_checked(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
     s01 = j00 * j10 + j01 * j11
     s11 = (j10 * j10 + j11 * j11) + lowpass
     det = s00 * s11 - s01 * s01
-    grads = torch.is_grad_enabled() and any(x.requires_grad for x in (means, normals, scales, viewmats, Ks))
-    check_projection_numerics(in_range=in_range, detJ=detJ, det=det, means2d=means2d, lowpass=float(lowpass),
-                              differentiable=grads)
+    if values_checked():
+        grads = torch.is_grad_enabled() and any(x.requires_grad for x in (means, normals, scales, viewmats, Ks))
+        live = in_range & (detJ != 0)
+        huge = live & ~(torch.isfinite(det) & torch.isfinite(detJ) & torch.isfinite(means2d).all(-1))
+        tiny = live & (det > 0) & (det < TINY_DET_F32)
+        check_projection_numerics(huge=huge, tiny=tiny, dtype=det.dtype, lowpass=float(lowpass), differentiable=grads)
     plane_offsets = n_cam[0] * q[0] + n_cam[1] * q[1] + n_cam[2] * q[2]
     valid = in_range & (detJ != 0) & (det > 0)
     if backface_cull:

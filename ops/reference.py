@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from .output import SplatOutput
-from .projection import ALPHA_MAX, PARALLEL_COS, Projected, pixel_rays, project
+from .projection import ALPHA_MAX, PARALLEL_COS, Projected, pixel_rays, project_torch
 from .rng import uniforms
 from .validation import check_backface_cull, check_dense_allocation, check_geometry, check_settings
 
@@ -95,8 +95,9 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
                                            (means, normals, scales, opacities, features, viewmats, Ks, background))
     check_dense_allocation(B=B, N=N, C=C, width=width, height=height, grad=grad, dtype=means.dtype,
                            device=means.device)
-    proj = project(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
-                   backface_cull=backface_cull)
+    # the pure-PyTorch projection: the oracle shares no native code with the op it checks
+    proj = project_torch(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
+                         backface_cull=backface_cull)
     pix = pixel_centres(width, height, means.dtype, means.device)
     rays = pixel_rays(Ks, width, height).reshape(B, -1, 3)
     chunk = max(1, max_chunk // max(1, N * (C + 4)))

@@ -401,31 +401,27 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
                      what="composite")
 
 
-def check_projection_numerics(*, in_range: torch.Tensor, detJ: torch.Tensor, det: torch.Tensor,
-                              means2d: torch.Tensor, lowpass: float, differentiable: bool) -> None:
+def check_projection_numerics(*, huge: torch.Tensor, tiny: torch.Tensor, dtype: torch.dtype, lowpass: float,
+                              differentiable: bool) -> None:
     """Refuse the float hazards of the projection instead of returning a silently wrong result.
 
-    * A visible (in-range, not edge-on) splat whose screen covariance or centre overflows the dtype
-      would be dropped silently (float32 from σ ≈ 10¹⁰ px): raise naming ``scales`` and the points.
-    * float32 with ``lowpass < 1e-12``: a visible splat with ``0 < det Σ < 1e-20`` px⁴ (σ ≲ 10⁻⁵ px) has
-      NaN/Inf gradients; raised only when the projection is differentiated.
+    ``huge``, ``tiny``: ``[B, N]`` masks of the visible (in-range, not edge-on) splats whose screen covariance or
+    centre overflows ``dtype``, and whose ``det Σ`` lies in ``(0, TINY_DET_F32)``.
+
+    * A huge splat would be dropped silently (float32 from σ ≈ 10¹⁰ px): raise naming ``scales`` and the points.
+    * float32 with ``lowpass < 1e-12``: a tiny splat (σ ≲ 10⁻⁵ px) has NaN/Inf gradients; raised only when the
+      projection is differentiated.
     """
-    if not values_checked():
-        return
-    live = in_range & (detJ != 0)
-    huge = live & ~(torch.isfinite(det) & torch.isfinite(detJ) & torch.isfinite(means2d).all(-1))
     if bool(huge.any()):
         b, idx = _points(huge)
         raise ValueError(f"scales: points {idx} (camera {b}) project to splats too large or too far off-screen "
-                         f"for {det.dtype} (the screen covariance or centre overflows) and would be dropped "
+                         f"for {dtype} (the screen covariance or centre overflows) and would be dropped "
                          f"silently; use float64, smaller scales, or cull them with near/far")
-    if differentiable and det.dtype == torch.float32 and lowpass < 1e-12:
-        tiny = live & (det > 0) & (det < TINY_DET_F32)
-        if bool(tiny.any()):
-            b, idx = _points(tiny)
-            raise ValueError(f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
-                             f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
-                             f"lowpass >= 1e-12 or float64")
+    if differentiable and dtype == torch.float32 and lowpass < 1e-12 and bool(tiny.any()):
+        b, idx = _points(tiny)
+        raise ValueError(f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
+                         f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
+                         f"lowpass >= 1e-12 or float64")
 
 
 def _points(mask: torch.Tensor, limit: int = 10) -> tuple[int, list[int]]:

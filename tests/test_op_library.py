@@ -13,7 +13,8 @@ import torch
 from torch import nn
 
 from nsplat.ops import Splatter, composite_sample, project, sample, splat
-from nsplat.ops.library import composite_backward_op, composite_forward_op, sample_op
+from nsplat.ops.library import (composite_backward_op, composite_forward_op, project_backward_op, project_op,
+                                sample_op)
 from tests.conftest import make_cameras, make_scene
 
 PARAMS = ("means", "normals", "scales", "opacities", "features")
@@ -134,13 +135,14 @@ def test_bfloat16_outside_autocast_is_still_refused():
 
 
 def test_double_backward_raises_naming_the_op():
-    """Differentiating the op's gradients raises a clear error naming the op (create_graph alone is fine)."""
+    """Differentiating the op's gradients raises a clear error naming the op's stage (create_graph alone is fine):
+    the native projection's backward or the compositor's, whichever autograd reaches first."""
     sc = make_scene(12, 0, C=3, dtype=torch.float64, spread=0.3)
     V, K = make_cameras(1, W, H, focal=12.0)
     ps = [sc[n].clone().requires_grad_() for n in PARAMS]
     out = splat(*ps, V, K, W, H, samples=3)
     g = torch.autograd.grad(out.image.square().sum(), ps[0], create_graph=True)[0]
-    with pytest.raises(RuntimeError, match=r"nsplat::composite_backward: double backward .* not supported"):
+    with pytest.raises(RuntimeError, match=r"nsplat::(composite|project)_backward: double backward .* not supported"):
         torch.autograd.grad(g.square().sum(), ps)
 
 
@@ -168,4 +170,17 @@ def test_opcheck_custom_ops():
     gs = [torch.randn(2, 6, 8, c, generator=g, dtype=torch.float64) for c in (2, 1, 1)]
     plain = [t.detach() for t in (*params, K, feat, bg)]
     torch.library.opcheck(composite_backward_op, (*plain, idx, pr, *gs, 0, 0, True),
+                          test_utils=("test_schema", "test_faketensor", "test_aot_dispatch_static"))
+
+
+def test_opcheck_projection_ops():
+    """``torch.library.opcheck`` of the native projection and its backward (CPU kernels)."""
+    sc = make_scene(10, 0, C=2, spread=0.3)
+    V, K = make_cameras(2, 8, 6, focal=8.0)
+    args = [sc[n].clone().requires_grad_() for n in PARAMS[:4]] + [V.clone().requires_grad_(), K.clone().requires_grad_()]
+    torch.library.opcheck(project_op, (*args, 0.01, 1e10, 1.0, False))
+    out = project_op(*(a.detach() for a in args), 0.01, 1e10, 1.0, False)
+    g = torch.Generator().manual_seed(3)
+    grads = [torch.randn(o.shape, generator=g, dtype=torch.float64) for o in out[:7]]
+    torch.library.opcheck(project_backward_op, (*(a.detach() for a in args), 0.01, 1e10, 1.0, False, *grads),
                           test_utils=("test_schema", "test_faketensor", "test_aot_dispatch_static"))

@@ -1,8 +1,9 @@
 // Python bindings of the CPU backend (the CUDA backend's are cuda/bindings.cpp): the shared API of
-// ../api.h, defined in splat_cpu.cpp, plus the CPU-only counting sort and atomic-scatter backward.
+// ../api.h, defined in splat_cpu.cpp, plus the CPU-only counting sort, atomic-scatter backward and projection.
 #include <torch/extension.h>
 
 #include "../api.h"
+#include "projection_cpu.h"
 #include "scatter_cpu.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -15,4 +16,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("entries_by_point", &nsplat::entries_by_point, "Filled slots grouped by point, stable counting sort (CPU)");
   m.def("composite_backward_scatter", &nsplat::composite_backward_scatter,
         "Single-pass backward with atomic scatter (CPU, non-deterministic summation order)");
+  m.def("project_forward", &nsplat::project_forward, "EWA projection of oriented surfels (CPU)");
+  m.def("project_backward", &nsplat::project_backward, "Backward of project_forward (CPU)");
 }
