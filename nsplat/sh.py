@@ -27,6 +27,8 @@ import math
 
 import torch
 
+from nsplat.ops.library import view_colour_op
+
 #: Normalisation constants of the real SH basis (see the module docstring).
 _C0 = 0.5 / math.sqrt(math.pi)
 _C1 = math.sqrt(3.0 / (4.0 * math.pi))
@@ -131,6 +133,19 @@ def sh_view_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 def view_colour(features: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """RGB of points seen from one camera (the model of :func:`view_colour_torch`; shapes there). On the CPU
+    with degree >= 1 the native kernel (``nsplat::view_colour``) computes it, elsewhere :func:`view_colour_torch`."""
+    K = features.shape[-1] // 3
+    degree = math.isqrt(K) - 1
+    if features.shape[-1] != view_channels(degree):
+        raise ValueError(f"features: expected 3·(L+1)² channels (3, 12, 27 or 48), got {features.shape[-1]}")
+    dtypes = {features.dtype, means.dtype, viewmat.dtype}
+    if degree == 0 or features.device.type != "cpu" or len(dtypes) > 1 or dtypes - {torch.float32, torch.float64}:
+        return view_colour_torch(features, means, viewmat)
+    return view_colour_op(features, means, viewmat, degree)
+
+
+def view_colour_torch(features: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     """RGB of points seen from one camera: ``max(0, f_0 + Σ_{l≥1} f_lm · Y_lm(d))``.
 
     Args:

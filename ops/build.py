@@ -22,8 +22,8 @@ CSRC = Path(__file__).resolve().parent / "csrc"
 _MODULES: dict[str, ModuleType] = {}
 #: The CPU backend's sources (csrc/cpu). lanes_<isa>.cpp compile the sampler's tile search for each instruction
 #: set (by `#pragma GCC target`, not by flags), lanes_dispatch.cpp picks one at run time.
-CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "lanes_dispatch.cpp",
-               "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
+CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "view_colour_cpu.cpp",
+               "lanes_dispatch.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
 #: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4).
 CPU_CFLAGS = ("-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off")
 #: A build lock older than this is taken to be left by a killed build (a real build takes ~1-3 minutes).

@@ -8,6 +8,8 @@ tracing, autograd for the compositor):
     nsplat::composite_backward  the estimator's backward of ``composite_forward`` (its own gradient is an error)
     nsplat::project             the EWA projection (CPU kernel; differentiable, autograd registered)
     nsplat::project_backward    its hand-derived backward
+    nsplat::view_colour         view-dependent SH colour (CPU kernel; differentiable, autograd registered)
+    nsplat::view_colour_backward  its hand-derived backward
 
 Because these are custom ops, ``torch.compile`` traces a model containing :class:`nsplat.ops.Splatter`
 without graph breaks (the fake kernels give the output shapes), and autograd / AOTAutograd see one node
@@ -28,7 +30,7 @@ from torch import Tensor
 from .build import backend
 
 __all__ = ["Native", "native", "sample_op", "composite_forward_op", "composite_backward_op", "project_op",
-           "project_backward_op"]
+           "project_backward_op", "view_colour_op", "view_colour_backward_op"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,6 +249,55 @@ def _no_double_backward_project(ctx, *grads):  # noqa: ANN001
 
 
 torch.library.register_autograd("nsplat::project_backward", _no_double_backward_project)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# View-dependent colour (CPU kernel; nsplat/sh.py::view_colour_torch is its reference and the other devices' path)
+
+
+@torch.library.custom_op("nsplat::view_colour", mutates_args=(), device_types=("cpu",))
+def view_colour_op(features: Tensor, means: Tensor, viewmat: Tensor, degree: int) -> Tensor:
+    """RGB ``[N,3]`` of points with SH colour ``features [N, 3·(L+1)²]`` (L = ``degree``, 1..3) seen from
+    ``viewmat [4,4]`` (the model of :func:`nsplat.sh.view_colour`)."""
+    return native("cpu").module.view_colour_forward(*_contiguous(features, means, viewmat), degree)
+
+
+@view_colour_op.register_fake
+def _(features, means, viewmat, degree):  # noqa: ANN001
+    return means.new_empty((means.shape[0], 3))
+
+
+@torch.library.custom_op("nsplat::view_colour_backward", mutates_args=(), device_types=("cpu",))
+def view_colour_backward_op(features: Tensor, means: Tensor, viewmat: Tensor, degree: int,
+                            g_out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of :func:`view_colour_op` w.r.t. ``features, means, viewmat`` (the viewmat's summed over fixed
+    blocks of points: bitwise identical for any thread count)."""
+    return tuple(native("cpu").module.view_colour_backward(*_contiguous(features, means, viewmat), degree,
+                                                           g_out.contiguous()))
+
+
+@view_colour_backward_op.register_fake
+def _(features, means, viewmat, degree, g_out):  # noqa: ANN001
+    return features.new_empty(features.shape), means.new_empty(means.shape), viewmat.new_empty(viewmat.shape)
+
+
+def _setup_view_colour(ctx, inputs, output) -> None:  # noqa: ANN001
+    features, means, viewmat, degree = inputs
+    ctx.save_for_backward(features, means, viewmat)
+    ctx.degree = degree
+
+
+def _backward_view_colour(ctx, g_out):  # noqa: ANN001
+    return (*view_colour_backward_op(*ctx.saved_tensors, ctx.degree, g_out), None)
+
+
+def _no_double_backward_view_colour(ctx, *grads):  # noqa: ANN001
+    raise RuntimeError("nsplat::view_colour_backward: double backward through the native view colour is not "
+                       "supported; nsplat.sh.view_colour_torch (pure PyTorch, same model) supports it.")
+
+
+torch.library.register_autograd("nsplat::view_colour", _backward_view_colour, setup_context=_setup_view_colour)
+torch.library.register_autograd("nsplat::view_colour_backward", _no_double_backward_view_colour)
 
 
 # ----------------------------------------------------------------------------------------------------------
