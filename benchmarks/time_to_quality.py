@@ -47,8 +47,7 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     # one recipe per time budget
     "point-e24": ("point", ["geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4"]),
     "point-e48": ("point", ["geometry.optim.epochs=48", "geometry.optim.anneal_epochs=8"]),
-    "point-e144": ("point", ["geometry.optim.epochs=144", "geometry.optim.anneal_epochs=24"]),
-    "e144": ("neural", ["geometry.optim.epochs=144", "geometry.optim.anneal_epochs=24"]),
+    "e72": ("neural", ["geometry.optim.epochs=72", "geometry.optim.anneal_epochs=12"]),
 }
 #: Budgets (seconds) at which the curves are read, per scene.
 BUDGETS = {"default": [60, 90, 120, 180], "lego": [300, 600, 900, 1200, 1500, 1800, 2100]}
