@@ -48,6 +48,7 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "point-e24": ("point", ["geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4"]),
     "point-e48": ("point", ["geometry.optim.epochs=48", "geometry.optim.anneal_epochs=8"]),
     "e72": ("neural", ["geometry.optim.epochs=72", "geometry.optim.anneal_epochs=12"]),
+    "e120": ("neural", ["geometry.optim.epochs=120", "geometry.optim.anneal_epochs=20"]),
 }
 #: Budgets (seconds) at which the curves are read, per scene.
 BUDGETS = {"default": [60, 90, 120, 180], "lego": [300, 600, 900, 1200, 1500, 1800, 2100]}
