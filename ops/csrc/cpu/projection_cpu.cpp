@@ -66,6 +66,24 @@ Camera<S> camera(const S* viewmat, const S* K) {
   return c;
 }
 
+// The inputs of a call: the surfels' arrays and the cameras.
+template <typename S>
+struct Scene {
+  int64_t B, N;
+  const S *M, *Nr, *Sc, *O;  // means, normals, scales, opacities
+  std::vector<Camera<S>> cams;
+};
+
+template <typename S>
+Scene<S> scene(const at::Tensor& means, const at::Tensor& normals, const at::Tensor& scales, const at::Tensor& opac,
+               const at::Tensor& viewmats, const at::Tensor& Ks) {
+  Scene<S> in{viewmats.size(0), means.size(0), means.data_ptr<S>(), normals.data_ptr<S>(), scales.data_ptr<S>(),
+              opac.data_ptr<S>(), {}};
+  for (int64_t b = 0; b < in.B; ++b)
+    in.cams.push_back(camera(viewmats.data_ptr<S>() + 16 * b, Ks.data_ptr<S>() + 9 * b));
+  return in;
+}
+
 // Every intermediate of one (camera, point) pair that the outputs and the backward need.
 template <typename S>
 struct Pair {
@@ -122,13 +140,10 @@ template <typename S>
 void forward_impl(const at::Tensor& means, const at::Tensor& normals, const at::Tensor& scales,
                   const at::Tensor& opac, const at::Tensor& viewmats, const at::Tensor& Ks, const ProjectSettings& st,
                   std::vector<at::Tensor>& out) {
-  const int64_t B = viewmats.size(0), N = means.size(0);
-  const S* M = means.data_ptr<S>();
-  const S* Nr = normals.data_ptr<S>();
-  const S* Sc = scales.data_ptr<S>();
-  const S* O = opac.data_ptr<S>();
-  std::vector<Camera<S>> cams;
-  for (int64_t b = 0; b < B; ++b) cams.push_back(camera(viewmats.data_ptr<S>() + 16 * b, Ks.data_ptr<S>() + 9 * b));
+  const Scene<S> in = scene<S>(means, normals, scales, opac, viewmats, Ks);
+  const int64_t B = in.B, N = in.N;
+  const S *M = in.M, *Nr = in.Nr, *Sc = in.Sc, *O = in.O;
+  const std::vector<Camera<S>>& cams = in.cams;
   S* m2 = out[0].data_ptr<S>();
   S* con = out[1].data_ptr<S>();
   S* amp = out[2].data_ptr<S>();
@@ -170,13 +185,10 @@ template <typename S>
 void backward_impl(const at::Tensor& means, const at::Tensor& normals, const at::Tensor& scales,
                    const at::Tensor& opac, const at::Tensor& viewmats, const at::Tensor& Ks, const ProjectSettings& st,
                    const std::vector<at::Tensor>& g, std::vector<at::Tensor>& out) {
-  const int64_t B = viewmats.size(0), N = means.size(0);
-  const S* M = means.data_ptr<S>();
-  const S* Nr = normals.data_ptr<S>();
-  const S* Sc = scales.data_ptr<S>();
-  const S* O = opac.data_ptr<S>();
-  std::vector<Camera<S>> cams;
-  for (int64_t b = 0; b < B; ++b) cams.push_back(camera(viewmats.data_ptr<S>() + 16 * b, Ks.data_ptr<S>() + 9 * b));
+  const Scene<S> in = scene<S>(means, normals, scales, opac, viewmats, Ks);
+  const int64_t B = in.B, N = in.N;
+  const S *M = in.M, *Nr = in.Nr, *Sc = in.Sc, *O = in.O;
+  const std::vector<Camera<S>>& cams = in.cams;
   const S* g_m2 = g[0].data_ptr<S>();
   const S* g_con = g[1].data_ptr<S>();
   const S* g_amp = g[2].data_ptr<S>();
