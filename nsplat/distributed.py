@@ -6,7 +6,8 @@ optimiser, so every rank applies the same update and holds the same model after 
 alone writes the run folder. Without torchrun (``WORLD_SIZE`` unset or 1) every function here is the
 single-process identity: :func:`shard` is the whole range, reductions return their input.
 
-* :func:`init_from_env` / :func:`shutdown` — the process group (gloo on CPU, NCCL on CUDA) with a timeout.
+* :func:`init_from_env` / :func:`shutdown` — the process group (gloo on CPU, NCCL on CUDA) with a timeout;
+  :func:`communication_threads` — its threads still alive (none after :func:`shutdown`).
 * :func:`rank`, :func:`world_size`, :func:`is_main` — who this process is.
 * :func:`shard` — this rank's contiguous share of ``n`` global slots (views of a step).
 * :func:`all_reduce_grads`, :func:`all_reduce_sum`, :func:`all_reduce_scalars`, :func:`broadcast_modules`,
@@ -82,6 +83,7 @@ def init_from_env(device: torch.device, timeout_s: float = DEFAULT_TIMEOUT_S) ->
     if not dist.is_available():
         raise DistributedError("torch.distributed is not available in this PyTorch build")
     _timeout_s = float(timeout_s)
+    _import_group_capturing_modules()
     backend = "nccl" if device.type == "cuda" else "gloo"
     if device.type == "cuda":
         torch.cuda.set_device(device)
@@ -94,10 +96,40 @@ def init_from_env(device: torch.device, timeout_s: float = DEFAULT_TIMEOUT_S) ->
     return True
 
 
+def _import_group_capturing_modules() -> None:
+    """Import, before the process group exists, the torch modules that bind the default group at import time.
+
+    ``torch.distributed.fsdp`` evaluates ``dist.group.WORLD`` as a default argument when it is imported, and
+    torch imports it lazily with ``torch._dynamo``, which the op's first call loads. Imported after
+    :func:`init_from_env`, that hidden reference keeps the group alive through ``destroy_process_group``: its
+    gloo threads outlive :func:`shutdown` and, when one of them releases a finished collective while the
+    interpreter exits, the process aborts (``terminate called without an active exception``). Imported
+    before, the argument binds the placeholder and :func:`shutdown` joins the group's threads.
+    """
+    import torch._dynamo  # noqa: F401  (imports torch.distributed.fsdp)
+
+
 def shutdown() -> None:
-    """Leave the process group (no-op without one)."""
+    """Leave the process group (no-op without one): every collective has completed (they all wait), and
+    destroying the group joins its communication threads, so none outlives the interpreter."""
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
+
+
+def communication_threads() -> list[str]:
+    """Names of this process's live gloo/NCCL threads (Linux ``/proc``; empty elsewhere). After
+    :func:`shutdown` there are none: a group still referenced somewhere would leave its threads running."""
+    tasks = "/proc/self/task"
+    if not os.path.isdir(tasks):
+        return []
+    names = []
+    for tid in os.listdir(tasks):
+        try:
+            with open(f"{tasks}/{tid}/comm") as fh:
+                names.append(fh.read().strip())
+        except OSError:  # the thread ended while listing
+            continue
+    return sorted(n for n in names if "gloo" in n or "nccl" in n)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import json
 import os
 import shutil
 import signal
@@ -205,6 +206,28 @@ def test_killed_rank_stops_the_run_and_resume_matches(config, two_ranks, tmp_pat
     assert a.keys() == b.keys()
     for name in a:
         assert torch.equal(a[name], b[name]), name
+
+
+def _exit_probe(*args: str) -> list[list[str]]:
+    """The communication threads each of 2 ranks of ``tests/distributed_exit_probe.py`` has left after
+    :func:`nsplat.distributed.shutdown`."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+           "-m", "tests.distributed_exit_probe", *args]
+    res = subprocess.run(cmd, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return [json.loads(line)["rank_threads"] for line in res.stdout.replace("}{", "}\n{").splitlines()
+            if line.startswith("{")]
+
+
+def test_shutdown_leaves_no_communication_thread():
+    """A completed distributed run exits clean: leaving the group joins its gloo threads on every rank, after
+    the op has loaded ``torch._dynamo`` (whose import of ``torch.distributed.fsdp`` binds the default group).
+    A group kept alive lets a gloo thread release a finished all-reduce while the interpreter exits, which
+    aborts the process; without the early import of :func:`nsplat.distributed.init_from_env` the probe sees
+    those threads, so the check can fail."""
+    assert _exit_probe() == [[], []]
+    leaked = _exit_probe("--no-early-import")
+    assert len(leaked) == 2 and all("pt_gloo_runloop" in threads for threads in leaked), leaked
 
 
 def test_shard_splits_every_slot_once():
