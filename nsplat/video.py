@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from pathlib import Path
 
 import imageio
@@ -54,14 +55,14 @@ class RenderRequest:
     def __post_init__(self) -> None:
         bad = [o for o in self.outputs if o not in OUTPUTS]
         if bad or not self.outputs:
-            raise ValueError(f"--outputs: expected a comma-separated subset of {','.join(OUTPUTS)}, got "
-                             f"{','.join(self.outputs) or 'nothing'}")
+            what = f"unknown output {bad[0]!r} in {','.join(self.outputs)}" if bad else "no output named"
+            raise ValueError(f"--outputs: {what}; expected a comma-separated subset of {','.join(OUTPUTS)}")
         if self.path not in PATHS and not self.path.endswith(".json"):
             raise ValueError(f"--path: expected one of {', '.join(PATHS)} or a nerfstudio camera_path .json file, "
                              f"got {self.path!r}")
         for name, value in (("fps", self.fps), ("frames", self.frames), ("resolution", self.resolution)):
-            if value is not None and not value > 0:
-                raise ValueError(f"--{name}: expected a positive number, got {value}")
+            if value is not None and not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"--{name}: expected a positive finite number, got {value}")
 
     @property
     def name(self) -> str:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -53,6 +54,20 @@ def _parser(command: str) -> argparse.ArgumentParser:
     return p
 
 
+def _check_writable(out: Path) -> None:
+    """Refuse ``--out`` before any work when the file could not be written: a folder, a path below a file,
+    or a folder this user may not write to."""
+    if out.is_dir():
+        raise UsageError(f"--out {out}: is a folder; expected the path of the file to write")
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise UsageError(f"--out {out}: cannot be written, {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UsageError(f"--out {out}: cannot be written, no permission to write in {parent}")
+
+
 def main(command: str, argv: list[str]) -> int:
     """Run ``view`` or ``export`` with its arguments ``argv``; returns the exit status."""
     try:
@@ -66,6 +81,8 @@ def main(command: str, argv: list[str]) -> int:
             rest, cfg = split_viewer_overrides(args.settings)
             if rest:
                 raise UsageError(f"unexpected argument {rest[0]!r}: the viewer's settings are viewer.<key>=value")
+        if command == "export" and args.out is not None:
+            _check_writable(args.out)
         model = load_run(args.run, args.device, points=command == "export" and args.format == "3dgs")
         if command == "export":
             path = export(model, args.format, args.out or args.run / "export" / FILE_NAMES[args.format])
