@@ -24,6 +24,7 @@ while IFS= read -r dir; do TORCH_INC+=(-isystem "$dir"); done < <("$PYTHON" -c "
 import sysconfig
 from torch.utils.cpp_extension import include_paths
 print('\\n'.join(include_paths() + [sysconfig.get_paths()['include'], '$CUDA_HOME/include']))")
+STD=$("$PYTHON" -c "from nsplat.ops.build import cxx_standard; print(cxx_standard())")  # c++17, or c++20 for torch >= 2.14
 CXX11_ABI=$("$PYTHON" -c "import torch; print(int(torch._C._GLIBCXX_USE_CXX11_ABI))")
 DEFS=(-DTORCH_EXTENSION_NAME=nsplat_cuda -DTORCH_API_INCLUDE_EXTENSION_H -D_GLIBCXX_USE_CXX11_ABI="$CXX11_ABI")
 OUTDIR=$(mktemp -d)
@@ -41,13 +42,13 @@ fi
 
 echo "cuda_compile_check: $("$NVCC" --version | tail -1) (sm_$ARCH), CUDA_HOME=$CUDA_HOME"
 # Same flags as torch.utils.cpp_extension gives nvcc, plus the extension's own (ops/build.py).
-"$NVCC" -c ops/csrc/cuda/splat_cuda.cu -o "$OUTDIR/splat_cuda.o" -std=c++17 -O3 -lineinfo \
+"$NVCC" -c ops/csrc/cuda/splat_cuda.cu -o "$OUTDIR/splat_cuda.o" -std="$STD" -O3 -lineinfo \
   -gencode=arch=compute_$ARCH,code=sm_$ARCH --expt-relaxed-constexpr --compiler-options '-fPIC' \
   -D__CUDA_NO_HALF_OPERATORS__ -D__CUDA_NO_HALF_CONVERSIONS__ -D__CUDA_NO_BFLOAT16_CONVERSIONS__ \
   -D__CUDA_NO_HALF2_OPERATORS__ "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}" \
   -Werror all-warnings -Xcompiler -Wall &
 NVCC_PID=$!
-"$CXX" -c ops/csrc/cuda/bindings.cpp -o "$OUTDIR/bindings.o" -std=c++17 -O1 -fPIC -Wall -Werror \
+"$CXX" -c ops/csrc/cuda/bindings.cpp -o "$OUTDIR/bindings.o" -std="$STD" -O1 -fPIC -Wall -Werror \
   "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}"
 wait "$NVCC_PID"
 echo "cuda_compile_check: OK ($(du -k "$OUTDIR/splat_cuda.o" | cut -f1) KiB kernels object, bindings object built)"

@@ -17,7 +17,7 @@ trains on it at ``downscale`` 4 (64², like the main job), every 8th photo by na
 
 Writes ``benchmarks/results/own_capture.json``, draws ``docs/images/neural/own_capture.png`` and prints a
 Markdown table. The study that chose the recipe (background model, random fill, stage-1 levers) ran at
-commit 5a3af74: ``benchmarks/archive/2026-11/own_capture.py``.
+commit 5a3af74 (``benchmarks/own_capture.py`` there; docs/history.md).
 """
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ import torch
 from benchmarks.common import REPO, markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.ops import project, sampler_isa
-from nsplat.ops.build import backend, build_dir
+from nsplat.ops.build import backend, build_dir, cxx_standard
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
@@ -62,7 +62,7 @@ def base_module(rev: str) -> ModuleType:
             (Path(tmp) / "ops" / "csrc").rename(src)
     sources = [str(p) for p in sorted((src / "cpu").glob("*.cpp"))]
     return load(name=f"nsplat_cpu_{rev}", sources=sources, extra_include_paths=[str(src)],
-                extra_cflags=["-O3", "-fopenmp", "-std=c++17"], extra_ldflags=["-fopenmp"], build_directory=str(out),
+                extra_cflags=["-O3", "-fopenmp", f"-std={cxx_standard()}"], extra_ldflags=["-fopenmp"], build_directory=str(out),
                 verbose=False)
 
 

@@ -14,7 +14,7 @@ renders. ``--budgets`` reads every curve at those seconds (the equal-time compar
 Runs go to ``runs/ttq/<scene>/<variant>-s<seed>`` (a finished run is not trained again); the table to stdout and
 ``benchmarks/results/time_to_quality-<scene>.json``, the figure to ``docs/images/neural/time_to_quality-<scene>.png``.
 The study that chose today's recipes (a hundred variants over eight rounds) ran at commit 5a3af74:
-``benchmarks/archive/2026-11/time_to_quality.py`` and docs/history.md.
+``benchmarks/time_to_quality.py`` there (docs/history.md).
 """
 from __future__ import annotations
 

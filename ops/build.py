@@ -24,8 +24,9 @@ _MODULES: dict[str, ModuleType] = {}
 #: set (by `#pragma GCC target`, not by flags), lanes_dispatch.cpp picks one at run time.
 CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "view_colour_cpu.cpp",
                "lanes_dispatch.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
-#: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4).
-CPU_CFLAGS = ("-O3", "-fopenmp", "-std=c++17", "-ffp-contract=off")
+#: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4). The C++ standard is
+#: added by :func:`cxx_standard`.
+CPU_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")
 #: A build lock older than this is taken to be left by a killed build (a real build takes ~1-3 minutes).
 STALE_LOCK_S = 900
 
@@ -37,6 +38,19 @@ def build_dir(kind: str) -> Path:
     path = root / f"torch-{tag}" / kind
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def cxx_standard() -> str:
+    """The C++ standard the installed torch's headers need, for g++ and nvcc alike: ``c++20`` where
+    ``torch/all.h`` refuses older compilers (torch 2.14 and later), else ``c++17`` (the project's own code needs
+    no more)."""
+    from torch.utils.cpp_extension import include_paths
+
+    for root in include_paths():
+        header = Path(root) / "torch" / "all.h"
+        if header.is_file():
+            return "c++20" if "202002L" in header.read_text(errors="replace") else "c++17"
+    return "c++17"
 
 
 def source_hash() -> str:
@@ -53,14 +67,13 @@ def _load(kind: str) -> ModuleType:
     from torch.utils.cpp_extension import load
 
     tag = f"-DNSPLAT_SOURCE_HASH={source_hash()}"
-
+    std = f"-std={cxx_standard()}"
     if kind == "cpu":
         sources = [str(CSRC / "cpu" / f) for f in CPU_SOURCES]
-        flags = dict(extra_cflags=[*CPU_CFLAGS, tag], extra_ldflags=["-fopenmp"])
+        flags = dict(extra_cflags=[*CPU_CFLAGS, std, tag], extra_ldflags=["-fopenmp"])
     else:
         sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]
-        flags = dict(extra_cflags=["-O3", "-std=c++17", tag],
-                     extra_cuda_cflags=["-O3", "-std=c++17", "-lineinfo", tag])
+        flags = dict(extra_cflags=["-O3", std, tag], extra_cuda_cflags=["-O3", std, "-lineinfo", tag])
     target = build_dir(kind)
     digest = source_hash()
     stamp = target / "source_hash"

@@ -30,7 +30,7 @@ import nsplat.ops.library as library
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
 from nsplat.ops.reference import MIN_TOTAL, size_measures, sps_bruteforce
 from nsplat.ops.validation import inclusion_for
-from nsplat.ops.build import CSRC, build_dir, source_hash
+from nsplat.ops.build import CSRC, build_dir, cxx_standard, source_hash
 from tests.conftest import make_cameras, make_scene
 from tests.test_op_stability import CASES
 
@@ -344,7 +344,7 @@ def emulated():
     from torch.utils.cpp_extension import load
 
     sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "emulate.cpp")]
-    flags = ["-O3", "-std=c++17", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}",
+    flags = ["-O3", f"-std={cxx_standard()}", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}",
              "-DNSPLAT_BIN_SCRATCH_BYTES=4096"]
     return load(name="nsplat_cuda_emu", sources=sources, extra_cflags=flags, extra_include_paths=[str(CSRC)],
                 build_directory=str(build_dir("cuda_emu")), verbose=False)
