@@ -30,7 +30,7 @@ from pathlib import Path
 import yaml
 
 from benchmarks.common import REPO, markdown, write_result
-from tests.test_distributed import TIMEOUT_S, _env, _ranks, _tiny, _torchrun
+from tests.test_distributed import RUN_TIMEOUT_S, TIMEOUT_S, _env, _ranks, _tiny, _torchrun
 
 KINDS = ("plain", "killed", "resumed")
 
@@ -61,13 +61,14 @@ def plain(config: Path, run: Path) -> tuple[bool, str]:
 def killed(config: Path, run: Path) -> tuple[bool, str]:
     job = _ranks("--config", str(config), "--run", str(run), "--dist-timeout", str(TIMEOUT_S))
     latest = run / "checkpoints" / "latest"
-    deadline = time.monotonic() + 120
-    while not latest.is_file() and time.monotonic() < deadline and job.procs[0].poll() is None:
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not latest.is_file() and time.monotonic() < deadline and all(p.poll() is None for p in job.procs):
         time.sleep(0.02)
     if not latest.is_file():
-        job.procs[1].kill()
-        job.finish()
-        return False, "no stage-2 checkpoint appeared"
+        for p in job.procs:
+            p.kill()
+        tails = [" ".join(err.split()[-40:]) for _, err in job.finish()]
+        return False, f"no stage-2 checkpoint appeared: {tails}"
     job.procs[1].send_signal(signal.SIGKILL)
     (code, err), _ = job.finish()
     if code != 1 or "another rank died" not in err:
@@ -97,7 +98,7 @@ def main() -> None:
         one = root / "one"
         if "resumed" in args.kinds:
             res = subprocess.run([sys.executable, str(REPO / "train.py"), "--config", str(config), "--run", str(one)],
-                                 env=_env(), cwd=REPO, capture_output=True, text=True, timeout=240)
+                                 env=_env(), cwd=REPO, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
             if res.returncode != 0:
                 raise SystemExit(f"the 1-process reference run failed: {res.stderr[-2000:]}")
         runs, t0 = [], time.perf_counter()

@@ -36,6 +36,7 @@ from benchmarks.common import REPO, markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.ops import project, sampler_isa
 from nsplat.ops.build import backend, build_dir, cxx_standard
+from nsplat.ops.library import camera_streams
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
@@ -89,18 +90,22 @@ def scene_inputs(name: str, ply: Path, views: int) -> tuple[list[list[torch.Tens
 def measure(modules: dict[str, ModuleType], inputs: list, width: int, height: int, s: dict, reps: int) -> dict:
     """Interleaved calls of each module's ``sample`` on every view: per module, per-view wall/CPU ms (medians over
     reps) and evaluations per covered pixel."""
-    call = {name: (lambda mod, args, seed: mod.sample(*args, width, height, s["samples"], s["eps"], seed,
-                                                      s["hermite_order"], s["hermite_tol"], 0, False))
-            for name in modules}
+    def call(mod: ModuleType, args: list, seed: int) -> list:
+        if mod is modules.get("base"):  # the base tree's sampler takes one seed for all cameras
+            return mod.sample(*args, width, height, s["samples"], s["eps"], seed, s["hermite_order"],
+                              s["hermite_tol"], 0, False)
+        return mod.sample(*args, camera_streams(torch.tensor(seed), 1), width, height, s["samples"], s["eps"],
+                          s["hermite_order"], s["hermite_tol"], 0, False)
+
     for name, mod in modules.items():  # warm-up (thread pools, caches)
-        call[name](mod, inputs[0], 0)
+        call(mod, inputs[0], 0)
     wall = {n: [] for n in modules}
     cpu_t = {n: [] for n in modules}
     work = {n: [] for n in modules}
     for rep in range(reps):
         for name, mod in modules.items():
             w0, c0 = time.perf_counter(), time.process_time()
-            outs = [call[name](mod, args, rep + 1) for args in inputs]
+            outs = [call(mod, args, rep + 1) for args in inputs]
             wall[name].append((time.perf_counter() - w0) / len(inputs))
             cpu_t[name].append((time.process_time() - c0) / len(inputs))
             work[name] += [float(o[3][o[2] > 0].double().mean()) for o in outs]

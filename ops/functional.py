@@ -55,7 +55,7 @@ def sampler_isa() -> str:
 
 
 def _seed_tensor(seed: int | torch.Tensor) -> torch.Tensor:
-    """The seed as the 0-dim int64 tensor the custom op takes (see :func:`nsplat.ops.library.sample_op`)."""
+    """The seed as the int64 tensor the custom op takes, 0-dim or ``[B]`` (:func:`nsplat.ops.library.sample_op`)."""
     if isinstance(seed, torch.Tensor):
         return seed.detach().to(torch.int64)
     return torch.tensor(seed, dtype=torch.int64)
@@ -199,8 +199,10 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
             compositing no estimator is unbiased (the transmittance is a product over the sample).
         composite: "alpha" (front-to-back blending) or "additive" (HT-weighted sum, no occlusion).
         background: ``[C]`` differentiable background (zeros if None). near, far: clipping on the centre
-            depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed (an int, or a 0-dim
-            integer tensor: a seed that changes every step without recompiling under ``torch.compile``).
+            depth. lowpass: screen-space low-pass variance in px² (the paper's +I is 1). seed: RNG seed: an int, a 0-dim
+            integer tensor (a seed that changes every step without recompiling under ``torch.compile``), or a ``[B]``
+            integer tensor, one seed per camera: camera ``b`` then samples exactly as the only camera of a call
+            with seed ``seed[b]``, so views rendered in one call sample as the same views rendered one by one.
         hermite_order, hermite_tol: tree expansion order cap and relative truncation tolerance.
         deterministic: True (default) gives run-to-run and thread-count independent, bitwise identical
             gradients (fixed-order per-point gather). False selects the faster single-pass CPU backward
@@ -229,7 +231,7 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
     check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
                    background=background, C=C, dtype=means.dtype, device=means.device)
     check_sampling(samples=samples, eps=eps, estimator=estimator, seed=seed, hermite_order=hermite_order,
-                   hermite_tol=hermite_tol, stratified=stratified)
+                   hermite_tol=hermite_tol, stratified=stratified, cameras=B)
     check_deterministic(deterministic)
     check_backface_cull(backface_cull)
     for stage in ("sample", "composite"):  # before any work: the projection alone can take minutes

@@ -75,15 +75,26 @@ def sample_op(mu: Tensor, con: Tensor, amp: Tensor, sig2: Tensor, nrm: Tensor, o
 
     ``mu [B,N,2]``, ``con [B,N,3]``, ``amp [B,N]``, ``sig2 [B,N]``, ``nrm [B,N,3]``, ``off [B,N]``,
     ``zc [B,N]`` (one float dtype), ``Ks [B,3,3]``; ``seed`` a 0-dim integer tensor (a tensor so that a
-    seed that changes every step, like :class:`~nsplat.ops.Splatter`'s, is a graph input, not a constant).
+    seed that changes every step, like :class:`~nsplat.ops.Splatter`'s, is a graph input, not a constant) or
+    ``[B]``, one seed per camera (:func:`camera_streams`).
     Returns ``indices [B,H,W,m]`` int32, ``probs [B,H,W,m]``, ``total [B,H,W,1]``, ``work [B,H,W,1]`` int32.
     """
-    s = int(seed)
-    if not 0 <= s < 2**63:
-        raise ValueError(f"seed: expected a value in [0, 2**63), got {s}")
+    streams = camera_streams(seed, amp.shape[0])
+    if streams.numel() and not bool((streams[:, 0] >= 0).all()):
+        raise ValueError(f"seed: expected values in [0, 2**63), got {int(streams[:, 0].min())}")
     args = _contiguous(mu, con, amp, sig2, nrm, off, zc, Ks)
-    return tuple(native(mu.device.type).module.sample(*args, width, height, samples, float(eps), s, hermite_order,
-                                                      float(hermite_tol), inclusion, bool(stratified)))
+    return tuple(native(mu.device.type).module.sample(*args, streams, width, height, samples, float(eps),
+                                                      hermite_order, float(hermite_tol), inclusion, bool(stratified)))
+
+
+def camera_streams(seed: Tensor, B: int) -> Tensor:
+    """The native sampler's ``(seed, camera)`` pair of each of ``B`` cameras, ``[B,2]`` int64 on the CPU: a 0-dim
+    ``seed`` gives ``(seed, b)`` (the cameras of one call draw independent streams), a ``[B]`` seed gives
+    ``(seed[b], 0)`` (camera ``b`` draws as the only camera of a call with seed ``seed[b]``)."""
+    s = seed.detach().to("cpu", torch.int64)
+    if s.dim() == 0:
+        return torch.stack([s.expand(B), torch.arange(B, dtype=torch.int64)], 1).contiguous()
+    return torch.stack([s, torch.zeros(B, dtype=torch.int64)], 1).contiguous()
 
 
 @sample_op.register_fake

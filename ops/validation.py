@@ -206,8 +206,9 @@ def native_estimator(estimator: str) -> int:
     return {"ht": 0, "ht-pips": 0, "paper": 1, "sampled": 2}[estimator]
 
 
-def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol, stratified=False) -> None:
-    """Check the sampler and estimator settings."""
+def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol, stratified=False,
+                   cameras=None) -> None:
+    """Check the sampler and estimator settings (``cameras``: the call's ``B``, which a ``[B]`` seed must match)."""
     if not isinstance(stratified, bool):
         raise TypeError(f"stratified: expected a bool, got {type(stratified).__name__}")
     if _int("samples", samples, 1) > MAX_SAMPLES:
@@ -218,10 +219,13 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol,
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator: expected one of {ESTIMATORS}, got {estimator!r}")
     if isinstance(seed, torch.Tensor):  # a per-step seed as a graph input (Splatter); range checked eagerly
-        if seed.dim() != 0 or seed.dtype.is_floating_point or seed.dtype.is_complex or seed.dtype == torch.bool:
-            raise TypeError(f"seed: expected an int or a 0-dim integer tensor, got {seed.dtype} {list(seed.shape)}")
-        if values_checked() and not 0 <= int(seed) < 2**63:
-            raise ValueError(f"seed: expected a value in [0, 2**63), got {int(seed)}")
+        if seed.dim() > 1 or seed.dtype.is_floating_point or seed.dtype.is_complex or seed.dtype == torch.bool:
+            raise TypeError(f"seed: expected an int, a 0-dim integer tensor or one seed per camera [B], got "
+                            f"{seed.dtype} {list(seed.shape)}")
+        if seed.dim() == 1 and cameras is not None and seed.shape[0] != cameras:
+            raise ValueError(f"seed: one seed per camera expected, got {seed.shape[0]} seeds for {cameras} cameras")
+        if values_checked() and seed.numel() and not bool((seed >= 0).all()):
+            raise ValueError(f"seed: expected values in [0, 2**63), got {seed.min().item()}")
     else:
         _int("seed", seed, 0)
         if int(seed) >= 2**63:
@@ -348,7 +352,7 @@ def check_sample_call(proj, Ks, width, height, *, samples, eps, seed, hermite_or
     _int("width", width, 1)
     _int("height", height, 1)
     check_sampling(samples=samples, eps=eps, estimator="ht", seed=seed, hermite_order=hermite_order,
-                   hermite_tol=hermite_tol, stratified=stratified)
+                   hermite_tol=hermite_tol, stratified=stratified, cameras=B)
     check_allocation(B=B, N=N, C=0, width=width, height=height, samples=samples, dtype=proj.amps.dtype,
                      device=proj.amps.device, what="sample")
 

@@ -371,7 +371,8 @@ def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold"):
     differ = 0
     for b in range(B):
         lam = size_measures(proj, b, W, H)
-        _, keys = sps_bruteforce(lam, m, seed, b)
+        # a [B] seed: camera b draws as camera 0 of a call with seed[b] (tests/test_op_camera_seeds.py)
+        _, keys = sps_bruteforce(lam, m, *((int(seed), b) if torch.as_tensor(seed).dim() == 0 else (int(seed[b]), 0)))
         dense = lam.sum(1).numpy()
         for idx, tot in ((gi[b], gt[b]), (ri[b], rt[b])):
             full = (idx.reshape(-1, m) >= 0).all(1).numpy()
@@ -445,6 +446,23 @@ def test_emulated_cuda_launch_code_equals_cpu(emulated, monkeypatch, dtype, comp
     assert_same_sample_law(got, ref, 0.01, proj, 5, inclusion=inclusion_for(estimator))
     _assert_identical(*composited)
     assert int(ref[3].max()) < 1500, "the scene is meant to exercise pruning"
+
+
+def test_emulated_cuda_per_camera_seeds_sample_as_one_call_per_view(emulated, monkeypatch):
+    """With one seed per camera the CUDA launch code samples each camera of a call as that camera alone with its
+    seed (bitwise), and draws the CPU backend's SPS law."""
+    sc = make_scene(600, 3, C=3, scale=(0.01, 0.05))
+    V, K = make_cameras(3, 24, 20)
+    seeds = torch.tensor([3, 2**62 + 1, 9])
+    (got, ref, proj), _ = _both(emulated, monkeypatch, sc, V, K, 24, 20, samples=6, seed=seeds)
+    assert_same_sample_law(got, ref, 0.01, proj, seeds)
+    _emulate(monkeypatch, emulated)
+    for b in range(3):
+        one = type(proj)(**{f.name: getattr(proj, f.name)[b:b + 1] for f in dataclasses.fields(proj)})
+        alone = sample(one, K[b:b + 1], 24, 20, samples=6, eps=0.01, seed=int(seeds[b]))
+        for a, c in zip(alone, got):
+            assert torch.equal(a, c[b:b + 1])
+    monkeypatch.undo()
 
 
 @pytest.mark.parametrize("N,m,C,W,H", [(0, 5, 3, 9, 7), (1, 5, 3, 9, 7), (3, 5, 3, 9, 7), (60, 300, 3, 10, 8),

@@ -11,10 +11,18 @@
 
 namespace nsplat {
 
+// The sampler's per-camera random streams: an int64 CPU tensor [B,2] of (seed, camera) pairs.
+inline void check_streams(const at::Tensor& streams, int64_t B) {
+  TORCH_CHECK(streams.device().is_cpu() && streams.scalar_type() == at::kLong && streams.dim() == 2 &&
+                  streams.size(0) == B && streams.size(1) == 2 && streams.is_contiguous(),
+              "nsplat: streams must be a contiguous int64 CPU tensor [B,2] of (seed, camera), B = ", B);
+}
+
 // Per-pixel SPS sample: {indices [B,H,W,m] int32, probs [B,H,W,m], total [B,H,W,1], work [B,H,W,1] int32}.
+// streams [B,2] int64 (CPU): camera b draws u(seed, camera, pixel, point) with (seed, camera) = streams[b].
 std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
-                               at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
-                               int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                               at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor streams, int64_t width,
+                               int64_t height, int64_t samples, double eps, int64_t order, double tol,
                                int64_t inclusion, bool stratified);
 
 // Compositing of a given sample: {image [B,H,W,C], alpha [B,H,W,1], depth [B,H,W,1]}.

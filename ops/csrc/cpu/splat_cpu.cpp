@@ -180,14 +180,17 @@ namespace {
 
 template <typename S>
 void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& sig2,
-                 const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, int64_t width,
-                 int64_t height, int64_t m, double eps, int64_t seed, int order, double tol, int inclusion,
+                 const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd,
+                 const int64_t* streams, int64_t width, int64_t height, int64_t m, double eps, int order, double tol,
+                 int inclusion,
                  bool stratified, LaneSearchFn search, at::Tensor& indices, at::Tensor& probs, at::Tensor& total,
                  at::Tensor& work) {
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height;
   const int nt = num_threads();
   const double log_eps = std::log(eps);
   for (int64_t b = 0; b < B; ++b) {
+    const uint64_t seed = static_cast<uint64_t>(streams[2 * b]);
+    const int64_t camera = streams[2 * b + 1];
     CpuTree tree;
     build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
                   sig2.data_ptr<S>() + b * N, nrm.data_ptr<S>() + b * N * 3, off.data_ptr<S>() + b * N,
@@ -206,12 +209,12 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
     std::vector<double> strat_base;
     if (stratified) {  // the camera-wide uniform of each sorted point
       strat_base.resize(tv.n);
-      const uint64_t stream = camera_stream(static_cast<uint64_t>(seed), b);
+      const uint64_t stream = camera_stream(seed, camera);
       for (int64_t s = 0; s < tv.n; ++s) strat_base[s] = uniform01(stream, tv.id[s]);
     }
     const LazyHermite hermite{tree.herm_state.get(), tree.amp.data(), tree.herm_coef.get()};
     const LaneJob job{tv, hermite, stratified ? strat_base.data() : nullptr, tree.nrm.data(), tree.off.data(), tree.zc.data(),
-                      Kd.data_ptr<double>() + b * 9, static_cast<uint64_t>(seed), b, width, static_cast<int>(m), eps,
+                      Kd.data_ptr<double>() + b * 9, seed, camera, width, static_cast<int>(m), eps,
                       inclusion};
     int* idx_b = indices.data_ptr<int>() + b * P * m;
     S* prob_b = probs.data_ptr<S>() + b * P * m;
@@ -270,10 +273,11 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
 }
 
 std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
-                               at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
-                               int64_t samples, double eps, int64_t seed, int64_t order, double tol, int64_t inclusion,
-                               bool stratified) {
+                               at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor streams, int64_t width,
+                               int64_t height, int64_t samples, double eps, int64_t order, double tol,
+                               int64_t inclusion, bool stratified) {
   check_cpu({mu, con, amp, sig2, nrm, off, zc, Ks});
+  check_streams(streams, amp.size(0));
   const char* isa = nullptr;
   const LaneSearchFn search = lane_search("auto", &isa);
   const int64_t B = amp.size(0);
@@ -284,7 +288,7 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
   at::Tensor work = at::empty({B, height, width, 1}, opts.dtype(at::kInt));
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample", [&] {
-    sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, width, height, samples, eps, seed,
+    sample_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, streams.data_ptr<int64_t>(), width, height, samples, eps,
                           static_cast<int>(order), tol, static_cast<int>(inclusion), stratified, search, indices, probs,
                           total, work);
   });

@@ -14,9 +14,9 @@ namespace nsplat {
 // splat_cuda.cu
 std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                     const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
-                                    const at::Tensor& zc, const at::Tensor& Ks, int64_t width, int64_t height,
-                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol,
-                                    int64_t inclusion, bool stratified);
+                                    const at::Tensor& zc, const at::Tensor& Ks, const at::Tensor& streams,
+                                    int64_t width, int64_t height, int64_t samples, double eps, int64_t order,
+                                    double tol, int64_t inclusion, bool stratified);
 std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                                const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc,
                                                const at::Tensor& Ks, const at::Tensor& feat, const at::Tensor& bg,
@@ -72,10 +72,11 @@ void check_points(const at::Tensor& amp) {
 }  // namespace
 
 std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
-                               at::Tensor off, at::Tensor zc, at::Tensor Ks, int64_t width, int64_t height,
-                               int64_t samples, double eps, int64_t seed, int64_t order, double tol,
+                               at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor streams, int64_t width,
+                               int64_t height, int64_t samples, double eps, int64_t order, double tol,
                                int64_t inclusion, bool stratified) {
   check_cuda({mu, con, amp, sig2, nrm, off, zc, Ks});
+  check_streams(streams, amp.size(0));
   check_dtype({mu, con, amp, sig2, nrm, off, zc});
   check_points(amp);
   TORCH_CHECK(width >= 1 && height >= 1, "nsplat: width and height must be >= 1");
@@ -83,8 +84,8 @@ std::vector<at::Tensor> sample(at::Tensor mu, at::Tensor con, at::Tensor amp, at
   TORCH_CHECK(eps > 0 && eps <= 1, "nsplat: eps must be in (0, 1]");
   TORCH_CHECK(order >= 0 && order <= 16, "nsplat: hermite_order must be in [0, 16]");
   TORCH_CHECK(inclusion == 0 || inclusion == 1, "nsplat: inclusion must be 0 (threshold) or 1 (pips)");
-  return sample_cuda(mu, con, amp, sig2, nrm, off, zc, Ks, width, height, samples, eps, seed, order, tol, inclusion,
-                     stratified);
+  return sample_cuda(mu, con, amp, sig2, nrm, off, zc, Ks, streams, width, height, samples, eps, order, tol,
+                     inclusion, stratified);
 }
 
 std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm, at::Tensor off,

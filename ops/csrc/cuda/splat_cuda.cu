@@ -414,7 +414,7 @@ constexpr int kTilePixels = kTileSize * kTileSize;
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
-                  double log_eps, uint64_t seed, int64_t b, int inclusion, bool stratified,
+                  double log_eps, uint64_t seed, int64_t camera, int inclusion, bool stratified,
                   const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
                   const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
                   uint8_t* __restrict__ bin8, double* __restrict__ key_scratch, int* __restrict__ idx_b,
@@ -426,7 +426,7 @@ __global__ void __launch_bounds__(kPixelThreads)
     if (px >= width || py >= height) continue;
     const int64_t p = py * width + px;
     const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    const Draw draw = pixel_draw(seed, b, p, width, stratified);
+    const Draw draw = pixel_draw(seed, camera, p, width, stratified);
     int cnt = 0;
     int* idx = idx_b + p * m;
     double* key = key_scratch + p * m;
@@ -552,9 +552,9 @@ __global__ void __launch_bounds__(kPixelThreads)
 
 std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                     const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
-                                    const at::Tensor& zc, const at::Tensor& Ks, int64_t width, int64_t height,
-                                    int64_t samples, double eps, int64_t seed, int64_t order, double tol,
-                                    int64_t inclusion, bool stratified) {
+                                    const at::Tensor& zc, const at::Tensor& Ks, const at::Tensor& streams,
+                                    int64_t width, int64_t height, int64_t samples, double eps, int64_t order,
+                                    double tol, int64_t inclusion, bool stratified) {
   const DeviceGuard guard(mu.device());
   const Stream stream = current_stream();
   const int64_t B = amp.size(0), N = amp.size(1), P = width * height, m = samples;
@@ -569,6 +569,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   const double log_eps = std::log(eps);
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
   const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
+  const int64_t* st = streams.data_ptr<int64_t>();  // (seed, camera) of each camera, on the host
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
     using S = scalar_t;
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
@@ -612,7 +613,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
         if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
         NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
             tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, static_cast<int>(m), log_eps,
-            static_cast<uint64_t>(seed), b, static_cast<int>(inclusion), stratified, as<TileItem>(items),
+            static_cast<uint64_t>(st[2 * b]), st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items),
             offsets.data_ptr<int64_t>(), near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8),
             key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m, probs.data_ptr<S>() + b * P * m,
             total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
