@@ -103,14 +103,15 @@ def background_of(cfg: RenderConfig, channels: int, like: torch.Tensor) -> torch
 
 def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
            features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-           cfg: RenderConfig, *, seed: int = 0, background: torch.Tensor | None = None,
+           cfg: RenderConfig, *, seed: int | torch.Tensor = 0, background: torch.Tensor | None = None,
            estimator: str | None = None) -> SplatOutput:
     """Render ``[N]`` surfels into ``[B]`` cameras with the renderer ``cfg.renderer``.
 
     Args:
         means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]``.
         viewmats ``[B,4,4]`` (OpenCV world→camera), Ks ``[B,3,3]``; width, height in pixels.
-        seed: the sampled op's RNG seed (see :func:`nsplat.engine.op_seed`).
+        seed: the sampled op's RNG seed (see :func:`nsplat.engine.op_seed`), or a ``[B]`` int64 tensor of one
+            seed per camera (op.md §3).
         background: ``[C]`` tensor overriding ``cfg.background`` (differentiable).
         estimator: overrides ``cfg.estimator``.
 
@@ -122,7 +123,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
     common = dict(background=background, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass,
                   backface_cull=cfg.backface_cull)
     if cfg.renderer == "splat":
-        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height, seed=int(seed),
+        return splat(means, normals, scales, opacities, features, viewmats, Ks, width, height,
+                     seed=seed if isinstance(seed, torch.Tensor) else int(seed),
                      background=background, **cfg.op_settings(estimator).kwargs())
     if cfg.renderer == "dense":
         return splat_dense(means, normals, scales, opacities, features, viewmats, Ks, width, height,

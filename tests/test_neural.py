@@ -290,3 +290,36 @@ def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
     assert build(off, neural_scene_from(off, geo, 0)).modules["model"].scene.cfg.channels == C
     with pytest.raises(ConfigError, match="neural.view_colour"):
         load_config(Config, _tiny(cache, view_colour=True))
+
+
+def test_a_batch_of_views_renders_in_one_call_as_one_call_per_view(cache, tmp_path, monkeypatch):
+    """Stage 2 renders a chunk's views in one op call with one seed per view: the feature images are those of
+    one call per view (bitwise) and the gradients of every learnable tensor equal theirs to summation order."""
+    import nsplat.render as gateway
+
+    cfg = load_config(Config, _tiny(cache))
+    ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
+    train = load_views(cfg, "train", ctx.device)
+    model = build(cfg, neural_scene_from(cfg, fit_geometry(cfg, ctx, train), 0)).modules["model"]
+    views, seeds = train.subset([0, 3, 5]), [11, 12, 13]
+    calls = []
+    real_render = gateway.render
+    monkeypatch.setattr(gateway, "render", lambda *a, **k: calls.append(a[5].shape[0]) or real_render(*a, **k))
+    params = [p for p in model.parameters() if p.requires_grad]
+    weights = torch.rand(3, model.feature_image(views.viewmats[:1], views.Ks[:1], views.width, views.height,
+                                                  [1]).shape[1], views.height, views.width,
+                         generator=torch.Generator().manual_seed(0))
+    calls.clear()
+    batched = model.feature_image(views.viewmats, views.Ks, views.width, views.height, seeds)
+    assert calls == [3], calls  # one op call for the three views
+    grads = torch.autograd.grad((batched * weights).sum(), params, allow_unused=True)
+    want = [None if g is None else torch.zeros_like(g) for g in grads]
+    for b, sd in enumerate(seeds):
+        one = model.feature_image(views.viewmats[b:b + 1], views.Ks[b:b + 1], views.width, views.height, sd)
+        assert torch.equal(one, batched[b:b + 1]), b
+        for acc, g in zip(want, torch.autograd.grad((one * weights[b:b + 1]).sum(), params, allow_unused=True)):
+            if g is not None:
+                acc += g
+    for got, ref in zip(grads, want):
+        if ref is not None:
+            torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)  # float32: summation order only

@@ -116,14 +116,17 @@ class NeuralRenderer(nn.Module):
         """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``.
 
         ``seed``: one op seed for all ``B`` cameras (one op call; with ``view_rest`` one call per camera,
-        camera ``b`` with ``seed + b``), or ``B`` seeds, one per camera (one call each: a view's samples then
-        do not depend on which other views share its call).
+        camera ``b`` with ``seed + b``), or ``B`` seeds, one per camera: one op call whose camera ``b`` samples
+        as the only camera of a call with seed ``seed[b]`` (op.md §3), so a view's samples do not depend on which
+        other views share its call (with ``view_rest``: one call per camera).
         """
         if not isinstance(seed, int):
             if len(seed) != viewmats.shape[0]:
                 raise ValueError(f"seed: expected {viewmats.shape[0]} per-camera seeds, got {len(seed)}")
-            return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(sd))
-                              for b, sd in enumerate(seed)])
+            if self.view_rest:  # per-camera colours: one op call per camera
+                return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(sd))
+                                  for b, sd in enumerate(seed)])
+            seed = torch.tensor([int(sd) for sd in seed], dtype=torch.int64)
         s = self.scene
         if self.view_rest and viewmats.shape[0] > 1:  # per-camera colours: one op call per camera, seed + b
             return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, seed + b)
