@@ -136,7 +136,7 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                 cfg: RenderConfig, *, seed: int = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
+                 cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
                  background: torch.Tensor | None = None, with_alpha: bool = False,
                  draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
@@ -150,10 +150,14 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
     a time (the op takes one feature tensor for all its cameras). Camera ``b`` uses op seed ``seed + b``.
     With ``shading="sh"`` the features are view-dependent RGB (spherical harmonics,
-    :func:`nsplat.sh.view_colour`), also evaluated and rendered per camera.
+    :func:`nsplat.sh.view_colour`), also evaluated and rendered per camera. With ``shading="none"`` the
+    cameras are rendered in one op call, and ``seed`` may be a ``[B]`` int64 tensor of one seed per camera
+    (camera ``b`` then samples as the only camera of a call with seed ``seed[b]``, op.md §3).
     """
     if draws < 1:
         raise ValueError(f"draws: expected an int >= 1, got {draws}")
+    if isinstance(seed, torch.Tensor) and (shading != "none" or draws > 1):
+        raise ValueError("seed: one seed per camera needs shading 'none' and one draw")
     if draws > 1:
         runs = [render_views(scene, viewmats, Ks, width, height, cfg, seed=seed + j * DRAW_STRIDE, shading=shading,
                              background=background, with_alpha=True) for j in range(draws)]

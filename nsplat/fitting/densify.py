@@ -178,6 +178,8 @@ class Densify(Strategy):
     """Density control as a fitter strategy: per-view statistics after each backward, summed over the step's
     views (and ranks) after Adam's step, and an event after every due epoch (logs ``densify/<count>``)."""
 
+    per_view = True  # the statistics are of each view's own screen-space gradient
+
     def __init__(self, cfg: DensifyConfig) -> None:
         self.cfg = cfg
         self.stats: DensityStats | None = None
@@ -197,7 +199,8 @@ class Densify(Strategy):
         g = means.grad if self._seen is None else means.grad - self._seen  # this view's own gradient
         self._seen = means.grad.clone()
         v = fit.views
-        self._step.observe(g * view.share, means.detach(), v.viewmats[view.index], v.Ks[view.index],
+        (index,) = view.indices  # per_view: one view per render
+        self._step.observe(g * view.share, means.detach(), v.viewmats[index], v.Ks[index],
                            v.width * v.height)
 
     def after_step(self, fit: FitState, step: int) -> dict[str, float]:

@@ -153,7 +153,7 @@ def adam_step(scene: SurfelScene, optimizer: torch.optim.Optimizer, cfg: FitConf
 def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: RenderConfig, run_dir: str | Path, *,
         log: LogConfig | None = None, seed: int = 0, resume: bool = False, background: torch.Tensor | None = None,
         validate: Hook | None = None, desc: str = "fit") -> dict[str, float]:
-    """Optimise ``scene`` in place so its renders match ``views`` (L1, per-view backward) on the engine.
+    """Optimise ``scene`` in place so its renders match ``views`` (L1 of each view) on the engine.
 
     Args:
         scene: the surfels; its learnable attributes are optimised.
@@ -190,27 +190,32 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         epoch, s = divmod(k, state.steps_per_epoch)
         idx = torch.randperm(len(views), generator=generator(seed, "batches", epoch))[s * cfg.batch:(s + 1) * cfg.batch]
         optimizer.zero_grad(set_to_none=True)
-        loss_val = 0.0
-        # Backward per view; gradients are summed (over ranks too, each rank rendering its share of the
-        # batch's slots j; a view's seed is its global slot's).
-        for j in distributed.shard(idx.numel()):
-            v = int(idx[j])
-            image, alpha = render_views(scene, views.viewmats[v:v + 1], views.Ks[v:v + 1], views.width,
-                                        views.height, render_cfg, seed=op_seed(seed, "fit", k * cfg.batch + j),
+        loss_sum = torch.zeros((), dtype=torch.float64)
+        # The rank's share of the batch's slots j (a view's seed is its global slot's), rendered in one op call
+        # with one seed per view when the features need no per-camera shading and no strategy needs each
+        # view's own gradient (the same samples and images as one call per view, op.md §3), else one call per
+        # view; gradients are summed over the calls and over ranks.
+        share = list(distributed.shard(idx.numel()))
+        together = cfg.shading == "none" and not any(st.per_view for st in strategies)
+        for group in ([share] if together and share else [[j] for j in share]):
+            v = [int(idx[j]) for j in group]
+            seeds = [op_seed(seed, "fit", k * cfg.batch + j) for j in group]
+            image, alpha = render_views(scene, views.viewmats[v], views.Ks[v], views.width, views.height, render_cfg,
+                                        seed=torch.tensor(seeds) if len(group) > 1 else seeds[0],
                                         shading=cfg.shading, background=background, with_alpha=True)
             view = ViewRender(v, image, alpha, idx.numel())
-            loss = (image - views.images[v:v + 1]).abs().mean()
+            loss = (image - views.images[v]).abs().mean(dim=(1, 2, 3)).sum()
             for strategy in strategies:
                 term = strategy.loss(state, view)
                 loss = loss if term is None else loss + term
             loss = loss / view.share
             loss.backward()
-            loss_val += loss.item()
+            loss_sum += loss.detach().double().cpu()
             for strategy in strategies:
                 strategy.after_backward(state, view)
         distributed.all_reduce_grads(optimizer)
         adam_step(scene, optimizer, cfg)
-        out = distributed.all_reduce_scalars({"train/loss": loss_val})
+        out = distributed.all_reduce_scalars({"train/loss": float(loss_sum)})
         for strategy in strategies:
             out.update(strategy.after_step(state, k))
         if state.epoch_done(k) is not None:

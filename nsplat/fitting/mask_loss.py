@@ -43,5 +43,5 @@ class MaskLoss(Strategy):
         return {}
 
     def loss(self, fit: FitState, view: ViewRender) -> torch.Tensor:
-        mask = fit.views.masks[view.index:view.index + 1].float()
-        return self.cfg.weight * (view.alpha[..., 0] - mask).abs().mean()
+        mask = fit.views.masks[view.indices].float()
+        return self.cfg.weight * (view.alpha[..., 0] - mask).abs().mean(dim=(1, 2)).sum()

@@ -1,7 +1,7 @@
 """The fitter's plug-in interface: a :class:`Strategy` changes what a fit does around its steps.
 
-The fitter (:func:`nsplat.fitting.fit`) is the algorithm alone: render one view, L1 against its image,
-backward, Adam. Everything optional plugs in as a strategy (in the spirit of gsplat's ``Strategy``), each in
+The fitter (:func:`nsplat.fitting.fit`) is the algorithm alone: render the step's views, L1 against their
+images, backward, Adam. Everything optional plugs in as a strategy (in the spirit of gsplat's ``Strategy``), each in
 its own module with its own config section:
 
 * :class:`nsplat.fitting.reposition.Reposition` — moves points that contribute nothing (paper §4);
@@ -58,15 +58,15 @@ class FitState:
 
 @dataclasses.dataclass
 class ViewRender:
-    """One training view rendered in a step.
+    """Training views rendered together (one op call) in a step.
 
     Attributes:
-        index: the view's index in :attr:`FitState.views`.
-        image: ``[1,H,W,C]`` render. alpha: ``[1,H,W,1]`` coverage.
+        indices: the views' indices in :attr:`FitState.views` (one unless every strategy accepts several).
+        image: ``[b,H,W,C]`` renders. alpha: ``[b,H,W,1]`` coverage.
         share: views in the step (each view's loss is divided by it).
     """
 
-    index: int
+    indices: list[int]
     image: torch.Tensor
     alpha: torch.Tensor
     share: int
@@ -75,10 +75,14 @@ class ViewRender:
 class Strategy:
     """An optional part of the fitter; every hook does nothing unless overridden.
 
-    The fitter calls, per step: :meth:`loss` and then :meth:`after_backward` for every view it renders, and
-    :meth:`after_step` after Adam's step (before the learning-rate schedule's epoch step). Strategies run in
-    the order the fitter lists them.
+    The fitter calls, per step: :meth:`loss` and then :meth:`after_backward` for every render (one or several
+    views, :class:`ViewRender`), and :meth:`after_step` after Adam's step (before the learning-rate schedule's
+    epoch step). Strategies run in the order the fitter lists them.
     """
+
+    #: The strategy needs each view's own gradient (:meth:`after_backward` after every single view): the
+    #: fitter then renders one view per op call.
+    per_view: bool = False
 
     def attach(self, scene: SurfelScene, views: PosedViews | None) -> dict[str, nn.Module]:
         """Check that the strategy applies to ``scene`` (and ``views`` when given), raising
@@ -87,11 +91,12 @@ class Strategy:
         return {}
 
     def loss(self, fit: FitState, view: ViewRender) -> torch.Tensor | None:
-        """An extra loss term of one view (added to its L1 before the division by ``view.share``)."""
+        """An extra loss term of the rendered views, summed over them (added to their L1 before the division
+        by ``view.share``)."""
         return None
 
     def after_backward(self, fit: FitState, view: ViewRender) -> None:
-        """After one view's backward (the scene's gradients hold the step's views so far)."""
+        """After the rendered views' backward (the scene's gradients hold the step's views so far)."""
 
     def after_step(self, fit: FitState, step: int) -> dict[str, float]:
         """After Adam's step ``step`` (0-based); may add, move or remove points. Returns scalars to log."""
