@@ -320,8 +320,9 @@ def _entries_by_point(indices: Tensor, N: int, nat: Native | None = None) -> tup
     (camera, pixel, slot) order within a point, and per-point segment offsets ``seg [N+1]`` (int64).
 
     A backend with a native stable counting sort (the CPU one) uses it: 8 bytes per filled slot + 8 per
-    point. Otherwise (CUDA): a stable device sort of the int32 point ids, :func:`_entries_by_point_sorted`
-    (positions, ids, sort indices and the gathered order: ≈ 28 bytes per filled slot at the peak).
+    point. Otherwise (CUDA): a stable device sort of every slot's int32 point id,
+    :func:`_entries_by_point_sorted` (keys, sorted keys and the order: ≈ 16 bytes per slot at the peak; its
+    ``entries`` also list the empty slots, after ``seg[N]``, which the backward never reads).
     ``nat`` defaults to :func:`native` of the device of ``indices``."""
     nat = native(indices.device.type) if nat is None else nat
     if nat.counting_sort:
@@ -331,12 +332,11 @@ def _entries_by_point(indices: Tensor, N: int, nat: Native | None = None) -> tup
 
 
 def _entries_by_point_sorted(indices: Tensor, N: int) -> tuple[Tensor, Tensor]:
-    """:func:`_entries_by_point` by a stable device sort (any device; the reference for the native one)."""
+    """:func:`_entries_by_point` by a stable device sort of all ``B·H·W·m`` slots (any device; the reference for
+    the native one), with no device→host copy: no size depends on the data. Empty slots are keyed ``N``, so
+    they sort after every point's: ``entries [B·H·W·m]`` int64 holds the filled slots grouped by point in
+    ``entries[:seg[N]]``, then the empty ones; ``seg [N+1]`` int64 are the points' segment offsets."""
     flat = indices.reshape(-1)
-    pos = torch.nonzero(flat >= 0).squeeze(1)
-    keys, order = torch.sort(flat.index_select(0, pos), stable=True)
-    entries = pos.index_select(0, order)
-    del pos, order
-    seg = torch.zeros(N + 1, dtype=torch.long, device=indices.device)
-    seg[1:] = torch.cumsum(torch.bincount(keys, minlength=N), 0)
+    keys, entries = torch.sort(torch.where(flat >= 0, flat, N), stable=True)
+    seg = torch.searchsorted(keys, torch.arange(N + 1, dtype=keys.dtype, device=keys.device))
     return entries, seg

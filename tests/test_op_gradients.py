@@ -183,8 +183,9 @@ def test_backward_point_order_native_matches_definition(shape, N):
     assert entries.dtype == torch.long and entries.tolist() == [s for _, s in expected]
     counts = [sum(1 for k in flat if k == p) for p in range(N)]
     assert seg.tolist() == [sum(counts[:p]) for p in range(N + 1)]
-    ref_entries, ref_seg = _entries_by_point_sorted(idx, N)
-    assert torch.equal(entries, ref_entries) and torch.equal(seg, ref_seg)
+    ref_entries, ref_seg = _entries_by_point_sorted(idx, N)  # every slot: the filled ones, then the empty ones
+    assert torch.equal(seg, ref_seg) and torch.equal(entries, ref_entries[:int(ref_seg[N])])
+    assert ref_entries[int(ref_seg[N]):].tolist() == [s for s, k in enumerate(flat) if k < 0]
 
 
 def test_backward_point_order_rejects_out_of_range_point():
