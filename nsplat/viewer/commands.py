@@ -70,6 +70,8 @@ def main(command: str, argv: list[str]) -> int:
         if command == "export":
             path = export(model, args.format, args.out or args.run / "export" / FILE_NAMES[args.format])
             log.info("%d surfels, %d features", model.num_points, model.features.shape[1])
+            if args.format == "3dgs" and model.task == "neural":
+                log.info("3dgs: stage 1's surfels and colour; a neural run's U-Net is not in the file")
             print(path)
             return 0
     except (UsageError, RunError, RunFolderError, ConfigError, DataError, ValueError) as exc:
