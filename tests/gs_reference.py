@@ -89,13 +89,17 @@ def gaussians_of_ply(path: str) -> dict[str, torch.Tensor]:
 def render_3dgs(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor,
                 sh: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
                 background: torch.Tensor, *, near: float = 0.01, eps2d: float = EPS2D, alpha_clamp: float = 0.999,
-                antialiased: bool = False) -> torch.Tensor:
+                antialiased: bool = False, min_alpha: float = 1.0 / 255.0, min_transmittance: float = 1e-4,
+                cull: bool = True) -> torch.Tensor:
     """Render Gaussians into one camera as 3DGS does (module docstring); returns the image ``[H,W,3]``.
 
     Args:
         means ``[N,3]``, quats ``[N,4]`` (w, x, y, z), log_scales ``[N,3]``, opacity_logits ``[N]``, sh
         ``[N,K,3]``: the file's values. viewmat ``[4,4]`` OpenCV world→camera, K ``[3,3]`` pixels.
         background ``[3]``. alpha_clamp: 0.99 (the original rasteriser) or 0.999 (gsplat).
+        min_alpha, min_transmittance, cull: the rasteriser's shortcuts (skip ``α < 1/255``, stop below
+            ``T = 1e-4``, only the tiles of the 3σ square); ``0, 0, False`` turns them off (the exact blend
+            of every Gaussian, for checks of the kernel alone).
     """
     dt = torch.float64
     means, quats, log_scales, sh = means.to(dt), quats.to(dt), log_scales.to(dt), sh.to(dt)
@@ -127,7 +131,9 @@ def render_3dgs(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tens
     mid = 0.5 * (cov2[:, 0, 0] + cov2[:, 1, 1])
     radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.1))))
     mu = torch.stack([fx * t[:, 0] / tz + cx, fy * t[:, 1] / tz + cy], -1)
-    keep &= (mu[:, 0] + radius > 0) & (mu[:, 0] - radius < width) & (mu[:, 1] + radius > 0) & (mu[:, 1] - radius < height)
+    if cull:
+        keep &= ((mu[:, 0] + radius > 0) & (mu[:, 0] - radius < width) & (mu[:, 1] + radius > 0)
+                 & (mu[:, 1] - radius < height))
     campos = -Wr.T @ w
     dirs = torch.nn.functional.normalize(means - campos, dim=-1)
     colour = sh_to_rgb(sh, dirs)
@@ -144,7 +150,8 @@ def render_3dgs(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tens
     image = bg.expand(height, width, 3).clone()
     for ty_ in range(math.ceil(height / TILE)):
         for tx_ in range(math.ceil(width / TILE)):
-            sel = (lo[:, 0] <= tx_) & (tx_ < hi[:, 0]) & (lo[:, 1] <= ty_) & (ty_ < hi[:, 1])
+            sel = (lo[:, 0] <= tx_) & (tx_ < hi[:, 0]) & (lo[:, 1] <= ty_) & (ty_ < hi[:, 1]) if cull \
+                else torch.ones_like(radius, dtype=torch.bool)
             x0, y0 = tx_ * TILE, ty_ * TILE
             x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
             if not bool(sel.any()):
@@ -156,9 +163,9 @@ def render_3dgs(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tens
             c = conic[sel]
             power = -0.5 * (c[:, 0] * d[..., 0] ** 2 + c[:, 2] * d[..., 1] ** 2) - c[:, 1] * d[..., 0] * d[..., 1]
             alpha = torch.clamp_max(opac[sel] * torch.exp(power), alpha_clamp)
-            alpha = torch.where((power <= 0) & (alpha >= 1.0 / 255.0), alpha, torch.zeros_like(alpha))
+            alpha = torch.where((power <= 0) & (alpha >= min_alpha), alpha, torch.zeros_like(alpha))
             trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha], 1), 1)
-            stop = (trans[:, 1:] < 1e-4) & (alpha > 0)                       # this Gaussian would end the pixel
+            stop = (trans[:, 1:] < min_transmittance) & (alpha > 0)          # this Gaussian would end the pixel
             used = torch.cumsum(stop.to(torch.int64), 1) == 0
             wgt = alpha * trans[:, :-1] * used
             t_end = torch.where(used, 1.0 - alpha, torch.ones_like(alpha)).prod(1, keepdim=True)
