@@ -1,9 +1,10 @@
 """3D Gaussian splatting's PLY (:mod:`nsplat.gaussian_ply`): the colour conversion against 3DGS's own SH
-evaluation (:mod:`tests.gs_reference`), the layout and the kernel conversion (:mod:`nsplat.gaussian_kernel`)
-of ``export --format 3dgs`` of a trained point-only run read back with plyfile, ``geometry.init: ply`` from
-that file (the inverse conversion) rendering the same image (the dense oracle and the sampled op, the same seed: every pixel within
-1e-6 of the original surfels' render, float32 rounding), another tool's Gaussians (rotated in their plane) and a
-scanner's plain point cloud."""
+evaluation (:mod:`tests.gs_reference`); ``export --format 3dgs`` of a trained point-only run read back with
+plyfile (the layout and the kernel conversion, :mod:`nsplat.gaussian_kernel`), rendered by the 3DGS reference
+renderer against nsplat's render, and ``geometry.init: ply`` from that file (the inverse conversion) rendering
+the same image (the dense oracle and the sampled op, the same seed: every pixel within 1e-6 of the original
+surfels' render, float32 rounding); another tool's Gaussians (rotated in their plane) and a scanner's plain
+point cloud."""
 from __future__ import annotations
 
 import dataclasses
