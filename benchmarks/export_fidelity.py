@@ -18,9 +18,9 @@ Each row: PSNR against the ground truth and against nsplat's render (mean over v
 
     python train.py --run runs/default geometry.log.checkpoint=0      # or any run with a geometry.ply
     python -m benchmarks.export_fidelity --run runs/default
-    NSPLAT_DATA=... python train.py --config configs/lego_splat_only.yaml --run runs/lego_e24 \\
+    NSPLAT_DATA=... python train.py --config configs/lego_splat_only.yaml --run runs/lego24 \\
         geometry.optim.epochs=24 geometry.optim.anneal_epochs=4
-    NSPLAT_DATA=... python -m benchmarks.export_fidelity --run runs/lego_e24
+    NSPLAT_DATA=... python -m benchmarks.export_fidelity --run runs/lego24
 
 Writes ``benchmarks/results/export_fidelity-<run folder name>.json``.
 """
