@@ -19,8 +19,11 @@ opacity logits, raw features), every value here is op-ready.
 
 3DGS (``--format 3dgs``): 3D Gaussian splatting's ``point_cloud.ply`` layout, which Gaussian-splatting
 viewers open (:mod:`nsplat.gaussian_ply`): every surfel as a flat Gaussian with its colour as spherical
-harmonics. It needs a colour model: the point-only model (RGB or SH colour; Lambert-shaded tasks export their
-albedo); for the neural task, stage 1's surfels and view colour (the U-Net is not in the file).
+harmonics, its opacity and tangent std-devs converted from nsplat's low-pass-compensated kernel to 3DGS's
+(:mod:`nsplat.gaussian_kernel`: exact per view, averaged over the training cameras because a file holds one
+opacity per Gaussian; what is left is measured in docs/results.md). It needs a colour model: the point-only
+model (RGB or SH colour; Lambert-shaded tasks export their albedo); for the neural task, stage 1's surfels and
+view colour (the U-Net is not in the file: a 3DGS viewer shows the stage-1 model).
 
 NPZ: ``means [N,3]``, ``normals [N,3]``, ``scales [N,2]``, ``opacities [N]``, ``features [N,C]``,
 ``colours [N,3]`` (float, [0, 1]), ``background [C]`` and, when known, the training cameras
@@ -34,6 +37,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from nsplat.gaussian_kernel import to_gaussian, view_statistics
 from nsplat.gaussian_ply import write_gaussian_ply
 from nsplat.view_model import ViewModel
 
@@ -108,15 +112,27 @@ def read_npz(path: str | Path) -> dict[str, torch.Tensor]:
 
 
 def write_3dgs(model: ViewModel, path: str | Path) -> Path:
-    """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussian_ply`).
+    """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussian_ply`),
+    with nsplat's kernel converted to 3DGS's (opacities and scales, :mod:`nsplat.gaussian_kernel`: averaged
+    over the model's training cameras, with its ``render_cfg.lowpass``).
 
-    Raises ``ValueError`` when the model's features are not a colour (a shader turns them into RGB)."""
+    Raises ``ValueError`` when the model's features are not a colour (a shader turns them into RGB) or it
+    has no training cameras."""
     C = model.features.shape[1]
     if model.shader is not None or (model.sh_degree is None and C != 3):
         raise ValueError(f"--format 3dgs: the {model.task or 'run'}'s {C} features are not a colour (its shader makes "
                          "the RGB); a 3DGS file holds a colour per point")
+    if model.cameras is None:
+        raise ValueError(f"--format 3dgs: the {model.task or 'run'}'s model has no training cameras; converting "
+                         "nsplat's kernel to 3DGS's averages over them")
     a = surfel_arrays(model)
-    return write_gaussian_ply(path, a["means"], a["normals"], a["scales"], a["opacities"], a["features"])
+    cams, lowpass = model.cameras, float(model.render_cfg.lowpass)
+    t = {k: torch.from_numpy(a[k]) for k in ("means", "normals", "scales", "opacities")}
+    kappa, pixel, _ = view_statistics(t["means"], t["normals"], t["scales"], cams.viewmats.cpu(), cams.Ks.cpu(),
+                                      cams.width, cams.height, lowpass=lowpass, near=model.render_cfg.near,
+                                      far=model.render_cfg.far)
+    scales, opacities = to_gaussian(t["scales"], t["opacities"], kappa, pixel, lowpass)
+    return write_gaussian_ply(path, a["means"], a["normals"], scales.numpy(), opacities.numpy(), a["features"])
 
 
 def export(model: ViewModel, fmt: str, path: str | Path) -> Path:

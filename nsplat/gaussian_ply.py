@@ -23,6 +23,10 @@ What this module writes (:func:`write_gaussian_ply`), exactly convertible both w
   bands zero. Every file has degree 3 (the layout 3DGS viewers expect); missing bands are zeros;
 * **opacity**: the logit of the opacity (clamped to ``[1e-6, 1 − 1e-6]``).
 
+The values given are written as they are: ``export --format 3dgs`` first converts nsplat's opacities and
+std-devs to 3DGS's kernel, and ``geometry.init: ply`` converts what this module reads back
+(:mod:`nsplat.gaussian_kernel`).
+
 Reading (:func:`read_gaussian_ply`, any 3DGS file): the quaternion is normalised, the normal is the axis of
 the smallest scale, and ``s0, s1`` are the std-devs of the Gaussian's in-plane covariance along the op's
 tangent axes of that normal. That is exact for the files written here and for Gaussians isotropic in their

@@ -4,6 +4,7 @@ evaluation writes valid JSON and PNGs, ``render`` writes a video, bad configs fa
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -107,7 +108,7 @@ def _args(cfg_path: Path, run: Path, *extra: str) -> list[str]:
     return ["--config", str(cfg_path), "--run", str(run), *extra]
 
 
-def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
+def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path, caplog):
     cfg_path = tmp_path / "tiny.yaml"
     cfg_path.write_text(yaml.safe_dump(_tiny(cache)))
     full, cut = tmp_path / "full", tmp_path / "cut"
@@ -162,7 +163,9 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path):
     assert any((full / "tb").iterdir()) and (full / "geometry.ply").is_file()
 
     # the 3DGS export of a neural run holds stage 1's surfels and colour (the U-Net is not in the file)
-    assert main(["export", "--run", str(full), "--format", "3dgs"]) == 0
+    with caplog.at_level(logging.INFO, logger="nsplat"):
+        assert main(["export", "--run", str(full), "--format", "3dgs"]) == 0
+    assert "U-Net is not in the file" in caplog.text
     gs = read_gaussian_ply(full / "export" / "point_cloud.ply")
     assert gs["means"].shape[0] == PlyData.read(str(full / "geometry.ply"))["vertex"].count
 

@@ -7,7 +7,8 @@ Usage::
 
 ``view`` takes the viewer's settings as ``viewer.<key>=value`` (:class:`nsplat.viewer.config.ViewerConfig`, the
 same names as ``viewer=true`` on a training command). ``export`` prints the written file on stdout; ``3dgs``
-writes the run's point-only model (:mod:`nsplat.export`). Bad input
+writes the run's point-only model with nsplat's kernel converted to 3DGS's (:mod:`nsplat.export`; a neural run's
+U-Net is not in the file). Bad input
 (missing run folder, no checkpoint, unknown format, a bad setting) is reported on one line, exit status 2.
 """
 from __future__ import annotations
@@ -87,6 +88,8 @@ def main(command: str, argv: list[str]) -> int:
         if command == "export":
             path = export(model, args.format, args.out or args.run / "export" / FILE_NAMES[args.format])
             log.info("%d surfels, %d features", model.num_points, model.features.shape[1])
+            if args.format == "3dgs" and model.task == "neural":
+                log.info("3dgs: stage 1's surfels and colour; a neural run's U-Net is not in the file")
             print(path)
             return 0
     except (UsageError, RunError, RunFolderError, ConfigError, DataError, ValueError) as exc:

@@ -24,7 +24,6 @@ command's videos (``orbit.mp4``, ``test.mp4``, ``train-smooth_depth.mp4``, ...).
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -125,22 +124,23 @@ def render(cfg: Config, ctx: RunContext, request: RenderRequest | None = None) -
 
 def point_view(cfg: Config, ctx: RunContext) -> ViewModel:
     """The point-only model for exports that store a colour per point (``export --format 3dgs``): stage 1's
-    surfels (``geometry.ply``) with their RGB or view-dependent SH colour, without cameras."""
+    surfels (``geometry.ply``) with their RGB or view-dependent SH colour and the training cameras (the 3DGS
+    export's kernel conversion averages over them, :mod:`nsplat.gaussian_kernel`)."""
     path = ctx.run_dir / "geometry.ply"
     if not path.is_file():
         raise RunFolderError(f"--run {ctx.run_dir}: no geometry.ply yet (stage 1 has not finished)")
     scene = SurfelScene.load_ply(path, geometry_scene_config(cfg), device=ctx.device)
     background = torch.tensor(cfg.data.background, dtype=scene.means.dtype, device=ctx.device)
-    return surfel_view(scene, None, shading=cfg.geometry.optim.shading, background=background,
-                       render_cfg=cfg.eval_render(), task="neural", seed=cfg.eval_seed())
+    train = load_views(cfg, "train", ctx.device)
+    return surfel_view(scene, cameras_of(train.images, train.viewmats, train.Ks), shading=cfg.geometry.optim.shading,
+                       background=background, render_cfg=cfg.eval_render(), task="neural", seed=cfg.eval_seed())
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:
     """The task contract's ``view``: the trained renderer (eval mode) with the training cameras; for a
     point-only run (``neural.steps: 0``) stage 1's surfels (:func:`point_view`)."""
-    model = point_view(cfg, ctx) if cfg.neural.steps == 0 else load_model(cfg, ctx).eval()
+    if cfg.neural.steps == 0:
+        return point_view(cfg, ctx)
     train = load_views(cfg, "train", ctx.device)
-    cameras = cameras_of(train.images, train.viewmats, train.Ks)
-    if isinstance(model, ViewModel):
-        return dataclasses.replace(model, cameras=cameras)
-    return neural_view(model, cameras, seed=cfg.eval_seed())
+    return neural_view(load_model(cfg, ctx).eval(), cameras_of(train.images, train.viewmats, train.Ks),
+                       seed=cfg.eval_seed())

@@ -25,6 +25,7 @@ from nsplat.data.visual_hull import hull_points
 from nsplat.engine import write_json
 from nsplat.errors import DataError
 from nsplat.fitting import fit
+from nsplat.gaussian_kernel import surfels_of_gaussians
 from nsplat.gaussian_ply import is_gaussian_ply, read_gaussian_ply
 from nsplat.metrics_image import psnr
 from nsplat.runctx import RunContext
@@ -71,7 +72,7 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     device = train.images.device
     kind = start_kind(cfg)
     if kind == "ply":
-        return _ply_scene(cfg, resolve(g.ply or ""), device, seed)
+        return _ply_scene(cfg, resolve(g.ply or ""), train, device, seed)
     spacing = None
     if kind == "sfm":
         means, normals, colours, spacing = _sfm_points(cfg, train, seed)
@@ -118,13 +119,15 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
                                    features=features, scale_factor=g.scale_factor)
 
 
-def _ply_scene(cfg: Config, path: Path, device: torch.device, seed: int) -> SurfelScene:
+def _ply_scene(cfg: Config, path: Path, train: PosedViews, device: torch.device, seed: int) -> SurfelScene:
     """Stage 1's surfels from the PLY at ``path``, in whichever layout it has:
 
     * this project's own (``f_0 …``: a run's ``geometry.ply``, :meth:`SurfelScene.save_ply`): read as stored;
     * 3D Gaussian splatting's (``f_dc_0 …``, :mod:`nsplat.gaussian_ply`; e.g. ``export --format 3dgs``):
       positions, normals, tangent std-devs, opacities and the colour up to ``geometry.sh_degree`` (the mean
-      colour without view dependence when ``geometry.optim.shading`` is ``none``);
+      colour without view dependence when ``geometry.optim.shading`` is ``none``); opacities and std-devs
+      converted from 3DGS's kernel to nsplat's over the training cameras ``train`` with ``render.lowpass``
+      (:func:`nsplat.gaussian_kernel.from_gaussian`, the inverse of the export's conversion);
     * any other point cloud with ``x y z`` (a scanner's): its normals or, without them, plane fits of the
       ``geometry.sfm.k`` nearest neighbours; its colours or grey; std-devs from the point spacing
       (``geometry.scale_factor``), opacity ``geometry.init_opacity``.
@@ -153,7 +156,12 @@ def _ply_scene(cfg: Config, path: Path, device: torch.device, seed: int) -> Surf
             features = features.clamp(0.0, 1.0)
         log.info("3DGS PLY: %d of %d Gaussians as surfels (file SH degree %d, %d colour channels)", len(keep),
                  gs["means"].shape[0], gs["degree"], channels)
-        rows = {k: gs[k][keep].float().to(device) for k in ("means", "normals", "scales", "opacities")}
+        means, normals = gs["means"][keep], gs["normals"][keep]
+        scales, opacities = surfels_of_gaussians(means, normals, gs["scales"][keep], gs["opacities"][keep],
+                                                 train.viewmats.cpu(), train.Ks.cpu(), train.width, train.height,
+                                                 lowpass=cfg.render.lowpass, near=cfg.render.near, far=cfg.render.far)
+        rows = {k: v.float().to(device) for k, v in
+                (("means", means), ("normals", normals), ("scales", scales), ("opacities", opacities))}
         return SurfelScene.from_points(scfg, rows["means"], rows["normals"], scales=rows["scales"].clamp_min(1e-9),
                                        opacities=rows["opacities"] if g.opacity is None else None,
                                        features=features.float().to(device))
