@@ -6,11 +6,17 @@
 #   3. python -m benchmarks.op_cuda (with gsplat's 2DGS rasteriser when its build succeeded), alone on the machine.
 #   4. (GPU_CHECK_STAGES: "profile") per-kernel GPU time (python -m benchmarks.op_cuda_profile);
 #   5. (GPU_CHECK_STAGES: "train") the README's main job on the GPU (`python train.py --device cuda`);
-#   6. (GPU_CHECK_STAGES: "ncu") Nsight Compute sections of one sample_kernel launch (N=1M, 512², m=16).
-# GPU_CHECK_STAGES picks stages (default "tests bench"; also "profile", "train", "ncu"); GPU_CHECK_BENCH_ARGS are
-# extra arguments of the benchmark (e.g. "--sections gsplat").
+#   6. (GPU_CHECK_STAGES: "ncu") Nsight Compute sections of one sample_kernel launch (N=1M, 512², m=16);
+#   7. (GPU_CHECK_STAGES: "lego") the lego stage-1 step table (python -m benchmarks.gpu_lego: sampler and step at
+#      200², 400², 800², one and eight views per op call, at most 150 s), then configs/lego.yaml on the GPU for at
+#      most 300 s with its val PSNR over time (python -m benchmarks.val_curve). Needs the lego data under
+#      $NSPLAT_DATA/nerf_synthetic/lego_400 (docs/performance.md says how it travels); run it alone:
+#      GPU_CHECK_STAGES=lego GPU_CHECK_BUDGET_S=570 bash .ci/gpu_check.sh   (one 10-minute call with the build).
+# GPU_CHECK_STAGES picks stages (default "tests bench"; also "profile", "train", "ncu", "lego"); GPU_CHECK_BENCH_ARGS
+# are extra arguments of the benchmark (e.g. "--sections gsplat").
 # Writes gpu_check.log, pytest_cuda.log, gsplat_build.log, op_cuda.json, op_cuda_profile.json and
-# main_job_metrics.json, ncu.txt into $OUT (default: a temp dir).
+# main_job_metrics.json, ncu.txt, lego_train.log and results/gpu_lego-cuda.json, results/gpu_lego_train-<gpu>.json
+# into $OUT (default: a temp dir).
 # No installation: the repository root goes on PYTHONPATH (nsplat/ops -> ops, nsplat/models -> models are
 # linked as the installed package maps them); wheels in .whl/ (plyfile, gsplat) go to /tmp/site.
 # GPU_CHECK_BUDGET_S (default 420) bounds the whole script; later stages get what is left.
@@ -24,6 +30,7 @@ has() { [[ "$STAGES" == *" $1 "* ]]; }
 T0=$SECONDS
 left() { echo $((BUDGET - (SECONDS - T0))); }
 upto() { local s=$(($(left) - $1)); [ "$s" -lt 30 ] && s=30; echo "$s"; }  # what is left minus $1 s, >= 30
+cap() { local s=$2; [ "$s" -gt "$1" ] && s=$1; [ "$s" -lt 30 ] && s=30; echo "$s"; }  # min($1, $2), >= 30
 exec > >(tee -a "$OUT/gpu_check.log") 2>&1
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
 export NSPLAT_BUILD_DIR=${NSPLAT_BUILD_DIR:-$PWD/.nsplat_build}
@@ -110,5 +117,26 @@ if has train; then
   timeout "$(upto 5)" python3 train.py --device cuda --run /tmp/gpu_main_job --overwrite log.progress=false
   echo "main job rc=$? ($((SECONDS - t)) s)"
   cp /tmp/gpu_main_job/eval_test/metrics.json "$OUT/main_job_metrics.json" 2>/dev/null
+fi
+if has lego; then
+  echo "== lego: step table, then configs/lego.yaml for at most 300 s ($(left) s left)"
+  LEGO=${NSPLAT_DATA:-$HOME/.local/share/nsplat}/nerf_synthetic/lego_400
+  if [ ! -f "$LEGO/transforms_train.json" ]; then
+    echo "lego: no data at $LEGO (set NSPLAT_DATA; docs/performance.md) - stage skipped"
+  else
+    GPU=$(python3 -c "import re, torch; print(re.sub(r'[^a-z0-9]+', '-', torch.cuda.get_device_name().lower()).strip('-'))")
+    t=$SECONDS
+    NSPLAT_BENCH_OUT=$OUT timeout "$(cap 150 $(($(left) - 330)))" python3 -m benchmarks.gpu_lego --device cuda
+    echo "gpu_lego rc=$? ($((SECONDS - t)) s)"
+    t=$SECONDS
+    TRAIN_S=$(cap 300 $(($(left) - 25)))
+    timeout "$TRAIN_S" python3 train.py --config configs/lego.yaml --device cuda --run /tmp/gpu_lego_train --overwrite \
+      log.progress=false geometry.log.validate=720 log.validate=125 >"$OUT/lego_train.log" 2>&1
+    echo "lego train rc=$? ($((SECONDS - t)) s; 124: stopped at ${TRAIN_S} s, as meant)"
+    tail -5 "$OUT/lego_train.log"
+    NSPLAT_BENCH_OUT=$OUT timeout 60 python3 -m benchmarks.val_curve /tmp/gpu_lego_train --name "gpu_lego_train-$GPU" \
+      --wall-s "$((SECONDS - t))" --command "train.py --config configs/lego.yaml --device cuda (timeout $TRAIN_S s)"
+    echo "val_curve rc=$?"
+  fi
 fi
 echo "total $((SECONDS - T0)) s"

@@ -31,6 +31,7 @@ SMOKE: dict[str, list[str]] = {
     "properties_soak": ["--scenes", "20", "--no-edges"],
     "tradeoff": ["--tiny"],
     "network_levers": ["--sizes", "64", "--reps", "1", "--compile-reps", "0"],
+    "gpu_lego": ["--device", "cpu", "--quick"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
 NEEDS_DATA = {"tradeoff": "dss_pointclouds"}
