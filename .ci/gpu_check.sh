@@ -125,17 +125,21 @@ if has lego; then
     echo "lego: no data at $LEGO (set NSPLAT_DATA; docs/performance.md) - stage skipped"
   else
     GPU=$(python3 -c "import re, torch; print(re.sub(r'[^a-z0-9]+', '-', torch.cuda.get_device_name().lower()).strip('-'))")
+    GPU=${GPU:-gpu}
+    # stage-1 validation every GPU_CHECK_LEGO_VALIDATE fitter steps (720: every 12 epochs of lego's 60 views at
+    # one view a step, about ten points in 300 s at today's 23 steps/s; scale it down if a step takes more views)
+    VAL=${GPU_CHECK_LEGO_VALIDATE:-720}
     t=$SECONDS
     NSPLAT_BENCH_OUT=$OUT timeout "$(cap 150 $(($(left) - 330)))" python3 -m benchmarks.gpu_lego --device cuda
     echo "gpu_lego rc=$? ($((SECONDS - t)) s)"
     t=$SECONDS
     TRAIN_S=$(cap 300 $(($(left) - 25)))
     timeout "$TRAIN_S" python3 train.py --config configs/lego.yaml --device cuda --run /tmp/gpu_lego_train --overwrite \
-      log.progress=false geometry.log.validate=720 log.validate=125 >"$OUT/lego_train.log" 2>&1
+      log.progress=false geometry.log.validate=$VAL log.validate=125 >"$OUT/lego_train.log" 2>&1
     echo "lego train rc=$? ($((SECONDS - t)) s; 124: stopped at ${TRAIN_S} s, as meant)"
     tail -5 "$OUT/lego_train.log"
     NSPLAT_BENCH_OUT=$OUT timeout 60 python3 -m benchmarks.val_curve /tmp/gpu_lego_train --name "gpu_lego_train-$GPU" \
-      --wall-s "$((SECONDS - t))" --command "train.py --config configs/lego.yaml --device cuda (timeout $TRAIN_S s)"
+      --wall-s "$((SECONDS - t))" --command "train.py --config configs/lego.yaml --device cuda geometry.log.validate=$VAL log.validate=125 (timeout $TRAIN_S s)"
     echo "val_curve rc=$?"
   fi
 fi
