@@ -126,3 +126,30 @@ def run_config(config: str | Path, run_dir: Path, overrides: list[str] = (), *, 
     return {"returncode": proc.returncode, "wall_s": wall,
             "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
             "load_before": load_before, "load_after": list(os.getloadavg()), "log": str(log)}
+
+
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def val_curve(run: Path) -> list[tuple[float, float]]:
+    """``(training seconds, val PSNR)`` of a run folder's stage 1 (``geometry_history.json``), then stage 2
+    (``history.json``, offset by stage 1's time when the run finished it); the seconds exclude validation."""
+    pts = [(h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "geometry_history.json") or {}).get("history", [])]
+    offset = (_read_json(run / "timing.json") or {}).get("geometry_s", 0.0)
+    pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "history.json") or {}).get("history", [])]
+    return pts
+
+
+def run_curve(run: Path) -> dict:
+    """``{curve: [[s, val PSNR], ...], stage1_points, finished, stage1_test_psnr, test_psnr}`` of the run folder
+    ``run``, finished or stopped (a time limit keeps the validations it reached)."""
+    if not run.is_dir():
+        raise FileNotFoundError(f"run: no run folder at {run}")
+    pts = val_curve(run)
+    stage1 = len((_read_json(run / "geometry_history.json") or {}).get("history", []))
+    geometry, metrics = _read_json(run / "eval_geometry.json") or {}, _read_json(run / "eval_test" / "metrics.json")
+    return {"curve": [list(p) for p in pts], "stage1_points": stage1, "finished": (run / "timing.json").is_file(),
+            "stage1_test_psnr": geometry.get("test", {}).get("psnr", {}).get("mean"),
+            "test_psnr": metrics["psnr"]["mean"] if metrics else None}
+

@@ -26,7 +26,7 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.figure import Figure
 
-from benchmarks.common import IMAGES, REPO, run_config, write_result
+from benchmarks.common import IMAGES, REPO, run_config, val_curve, write_result
 
 #: Scene → (neural config, point-only config, stage-1 / stage-2 validation cadences: dense enough for a curve).
 SCENES = {"default": ("default.yaml", "splat_only.yaml", ["geometry.log.validate=100", "log.validate=100"]),
@@ -74,14 +74,6 @@ def train(scene: str, variant: str, seed: int) -> None:
     (run / "ttq.json").write_text(json.dumps(ran, indent=1))
 
 
-def curve(run: Path) -> list[tuple[float, float]]:
-    """``(training seconds, val PSNR)`` of stage 1, then stage 2."""
-    pts = [(h["elapsed_s"], h["val_psnr"]) for h in (_read(run / "geometry_history.json") or {}).get("history", [])]
-    offset = (_read(run / "timing.json") or {}).get("geometry_s", 0.0)
-    pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read(run / "history.json") or {}).get("history", [])]
-    return pts
-
-
 def at_budget(pts: list[tuple[float, float]], budget: float) -> float:
     """Val PSNR of the last validation at or before ``budget`` seconds (nan when none)."""
     done = [p for t, p in pts if t <= budget]
@@ -99,7 +91,7 @@ def summary(scene: str, variant: str, seed: int) -> dict | None:
     return {"variant": variant, "seed": seed, "config": VARIANTS[variant], "train_s": timing["train_total_s"],
             "stage1_s": timing["geometry_s"], "stage1_test_psnr": geometry.get("test", {}).get("psnr", {}).get("mean"),
             "test_psnr": test, "points": metrics["points"] if metrics else geometry.get("points"),
-            "curve": curve(run), **(_read(run / "ttq.json") or {})}
+            "curve": val_curve(run), **(_read(run / "ttq.json") or {})}
 
 
 def front(rows: list[dict], budgets: list[float]) -> list[dict]:

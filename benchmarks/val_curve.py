@@ -2,7 +2,7 @@
 
 Reads the run's ``geometry_history.json`` (stage 1: ``geometry.log.validate``) and ``history.json`` (stage 2:
 ``log.validate``), written at every validation, so a run killed by a time limit keeps the points it reached
-(:func:`benchmarks.time_to_quality.curve`: the training seconds exclude the validation renders; stage 2's are
+(:func:`benchmarks.common.run_curve`: the training seconds exclude the validation renders; stage 2's are
 offset by stage 1's time when the run finished it), with the test metrics when the run got that far.
 
     timeout 300 python train.py --config configs/lego.yaml --device cuda --run-dir /tmp/lego \\
@@ -14,28 +14,10 @@ Writes ``benchmarks/results/<name>.json`` and prints the curve as a table.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from benchmarks.common import markdown, write_result
-from benchmarks.time_to_quality import curve
-
-
-def _read(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
-def run_curve(run: Path) -> dict:
-    """``{curve: [[s, val PSNR], ...], stage1_points, finished, stage1_test_psnr, test_psnr}`` of ``run``."""
-    if not run.is_dir():
-        raise FileNotFoundError(f"run: no run folder at {run}")
-    pts = curve(run)
-    stage1 = len((_read(run / "geometry_history.json") or {}).get("history", []))
-    geometry, metrics = _read(run / "eval_geometry.json") or {}, _read(run / "eval_test" / "metrics.json")
-    return {"curve": [list(p) for p in pts], "stage1_points": stage1, "finished": (run / "timing.json").is_file(),
-            "stage1_test_psnr": geometry.get("test", {}).get("psnr", {}).get("mean"),
-            "test_psnr": metrics["psnr"]["mean"] if metrics else None}
+from benchmarks.common import markdown, run_curve, write_result
 
 
 def main() -> int:

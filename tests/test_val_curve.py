@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.val_curve import run_curve
+from benchmarks.common import run_curve
 
 
 def _write(path: Path, data: dict) -> None:
