@@ -48,8 +48,10 @@ class CaptureConfig:
             ``sparse`` itself), coverage masks of either kind (``<masks>/<image name>.png`` or
             ``<masks>/<image name>``; ``null``: none; needed only by ``geometry.init: hull``).
         file: the JSON file of a ``transforms`` capture (frames' ``file_path`` relative to ``data.root``).
-        normalize: move the world so the cameras' common look-at point is the origin and scale it so their
-            median distance to it is ``radius`` (the units the learning rates were set in).
+        normalize: move the world so the scene centre is the origin (where the SfM points that the views
+            see near their image centres are, else the cameras' look-at point), z is the cameras' mean up
+            direction and their median distance to the centre is ``radius`` (the units the learning rates
+            and ``geometry.bbox`` were set in; :mod:`nsplat.tasks.neural.frame`).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
             sphere; :func:`nsplat.tasks.neural.capture.with_capture_render`).
         cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
@@ -217,6 +219,10 @@ class GeometryConfig:
         sh_degree: degree (1..3) of the view-dependent colour when ``optim.shading`` is ``sh``
             (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
         sfm: :class:`SfmInitConfig`. background: :class:`BackgroundConfig` (points added to the initial ones).
+        stall_epochs: stop with an error naming what is wrong when, at the first validation (``log.validate``)
+            at or after this many epochs (and 100 fitter steps), the val PSNR has risen less than 1 dB from the initial surfels' and
+            is less than 1 dB above a flat image of the val views' mean colour: nothing is being learnt
+            (0: no check; :func:`nsplat.tasks.neural.geometry.fit_geometry`).
     """
 
     init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
@@ -238,6 +244,7 @@ class GeometryConfig:
     sh_degree: int = 0
     sfm: SfmInitConfig = dataclasses.field(default_factory=SfmInitConfig)
     background: BackgroundConfig = dataclasses.field(default_factory=BackgroundConfig)
+    stall_epochs: float = 3.0
 
     def channels(self) -> int:
         """Feature channels of the stage-1 scene: RGB, or RGB spherical harmonics up to ``sh_degree``."""
@@ -251,7 +258,8 @@ class GeometryConfig:
         require(all(math.isfinite(v) for v in self.bbox) and all(a < b for a, b in zip(self.bbox[:3], self.bbox[3:])),
                 "bbox", "finite (xmin, ymin, zmin, xmax, ymax, zmax) with min < max", list(self.bbox))
         require_fields(self, grid=">=8", alpha_threshold="unit", dilate=">=0", min_seen="unit", max_points=">=1",
-                       scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit")
+                       scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit",
+                       stall_epochs=">=0")
         require(all(a in ATTRIBUTES for a in self.learn), "learn", f"a subset of {list(ATTRIBUTES)}", self.learn)
         require(self.opacity is None or "opacities" not in self.learn, "learn",
                 "no 'opacities' with a constant opacity (set opacity: null for per-point opacities)", self.learn)
