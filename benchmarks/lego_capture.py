@@ -153,8 +153,8 @@ def main() -> None:
     count = photos(args.source, scene)
     feats = features(scene, args.threads)
     roots = [sfm(scene, s, args.threads) for s in args.seeds]
-    if args.similarity:
-        roots.append(similar(roots[0], 1234))
+    if args.similarity:  # trained second, beside the run it moves
+        roots.insert(1, similar(roots[0], 1234))
     if args.sfm_only:
         return
     rows = {}
