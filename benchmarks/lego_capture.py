@@ -13,6 +13,7 @@ frame must not depend on the world frame SfM picked.
 
     python -m benchmarks.lego_capture --seeds 0 1 2 --similarity     # SfM ~10 min per seed and training ~15 min per run on 2 cores
     python -m benchmarks.lego_capture --seeds 3 --sfm-only           # one more SfM run, no training
+    python -m benchmarks.lego_capture --seeds 0 1 2 --similarity --report   # tabulate the finished runs only
 
 Writes ``benchmarks/results/lego_capture.json`` (per run: SfM registered images, points and time, the training
 frame's diagnosis, stage-1 and final test PSNR, wall and CPU seconds) and prints a Markdown table.
@@ -29,9 +30,13 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pycolmap
+import torch
 from scipy.spatial.transform import Rotation
 
 from benchmarks.common import REPO, markdown, run_config, write_result
+from nsplat.data.colmap import load_colmap
+from nsplat.data.views import PosedViews
+from nsplat.tasks.neural.frame import capture_frame
 
 LEGO = Path("/work/shared/data/nerf_synthetic/lego_400")
 
@@ -126,6 +131,21 @@ def train(root: Path, run: Path) -> dict:
         return {"returncode": 1, "error": str(err)}
 
 
+def frame_of(root: Path) -> dict:
+    """The training frame ``configs/colmap.yaml`` finds for the SfM output at ``root`` (no training): its
+    diagnosis, the registered images and the SfM points' median distance from the SfM world's origin (COLMAP
+    centres its world on the cameras) in camera distances."""
+    cap = load_colmap(root, downscale=4)
+    every = PosedViews(images=torch.empty(len(cap.train) + len(cap.test), cap.train.height, cap.train.width, 0),
+                       viewmats=torch.cat([cap.train.viewmats, cap.test.viewmats]),
+                       Ks=torch.cat([cap.train.Ks, cap.test.Ks]), names=cap.train.names + cap.test.names)
+    frame = capture_frame(every, cap.points, radius=3.2)
+    out = frame.diagnosis()
+    out["registered"] = len(every)
+    out["points_from_sfm_origin_radii"] = float(cap.points.xyz.double().median(0).values.norm()) / frame.radius
+    return out
+
+
 def result(root: Path, run: Path, ran: dict) -> dict:
     """One row: SfM record, the frame diagnosis, stage-1 and final test PSNR (absent when the run stopped)."""
     row = {"root": str(root), "run": str(run), "sfm": json.loads((root / "sfm.json").read_text()),
@@ -148,6 +168,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--similarity", action="store_true", help="also train the first SfM run moved by a similarity")
     ap.add_argument("--sfm-only", action="store_true")
+    ap.add_argument("--report", action="store_true", help="train nothing: tabulate the finished runs")
     args = ap.parse_args()
     scene = args.cache / "lego_capture"
     count = photos(args.source, scene)
@@ -160,7 +181,12 @@ def main() -> None:
     rows = {}
     for root in roots:
         run = args.runs / root.name
+        if args.report:
+            if (run / "eval_test" / "metrics.json").is_file() or (run / "capture_frame.json").is_file():
+                rows[root.name] = result(root, run, {"returncode": 0 if (run / "finished.json").is_file() else None})
+            continue
         rows[root.name] = result(root, run, train(root, run))
+    frames = {root.name: frame_of(root) for root in sorted(scene.glob("sfm-*")) if (root / "sfm.json").is_file()}
     table = markdown(["SfM run", "registered / photos", "SfM points", "exit", "stage 1 test PSNR", "test PSNR", "train wall s"],
                      [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
                        max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
@@ -168,7 +194,8 @@ def main() -> None:
                        f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
                        f"{r['wall_s']:.0f}" if r.get("wall_s") else "-"] for k, r in rows.items()])
     write_result("lego_capture", {"command": "python -m benchmarks.lego_capture " + " ".join(sys.argv[1:]),
-                                  "photos": count, "features": feats, "runs": rows, "markdown": table}, table)
+                                  "photos": count, "features": feats, "runs": rows, "frames": frames,
+                                  "markdown": table}, table)
 
 
 if __name__ == "__main__":

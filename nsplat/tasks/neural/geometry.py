@@ -317,7 +317,9 @@ def where_surfels(cfg: Config, means: torch.Tensor, views: PosedViews) -> str:
         centre, radius = prep.centre()
         f = prep.frame
         aim = prep.to_training(f.look_at[None])[0]
-        text += (f"; the capture's centre {_fmt(centre)} (placed by the {f.source}, {f.core} core SfM points), "
+        placed = {"points": "from the SfM points seen near the middle of most views",
+                  "look-at": "from the cameras' look-at point", "all points": "from all SfM points"}[f.source]
+        text += (f"; the capture's centre {_fmt(centre)} ({placed}; {f.core} such core SfM points), "
                  f"cameras {radius:.2f} from it, aiming at {_fmt(aim)}, {f.diagnosis()['look_at_offset_radii']:.2f} "
                  f"camera distances off")
     return text
