@@ -281,7 +281,7 @@ def test_a_run_that_learns_nothing_stops_and_says_where_the_surfels_are(capture,
     raw["data"]["capture"]["near_far"] = False
     raw["render"] = {**raw.get("render", {}), "near": 50.0, "far": 100.0}
     raw["geometry"].update(optim={"epochs": 8, "batch": 1}, stall_epochs=2)
-    raw["geometry"]["log"] = {"every": 18, "checkpoint": 0, "validate": 18}    # 18 training views: an epoch
+    raw["geometry"]["log"] = {"every": 18, "checkpoint": 18, "validate": 18}   # 18 training views: an epoch
     cfg_path = tmp_path / "broken.yaml"
     cfg_path.write_text(yaml.safe_dump(raw))
     assert main(["--config", str(cfg_path), "--run", str(tmp_path / "run")]) == 2
@@ -290,6 +290,7 @@ def test_a_run_that_learns_nothing_stops_and_says_where_the_surfels_are(capture,
     assert re.search(r"a training view sees 9\d% of them \(median\), 0 of 18 views under 1%", err)  # they are in view
     assert "the capture's centre (0.00, 0.00, 0.00) (from the cameras' look-at point; 0 such core" in err
     assert "geometry.stall_epochs: 0 turns this check off" in err
+    # the run folder stays (it has checkpoints), with the flat validation curve that stopped it
     history = json.loads((tmp_path / "run" / "geometry_history.json").read_text())["history"]
     assert [h["step"] for h in history] == [18, 36, 54, 72, 90, 108]
 

@@ -48,10 +48,9 @@ class CaptureConfig:
             ``sparse`` itself), coverage masks of either kind (``<masks>/<image name>.png`` or
             ``<masks>/<image name>``; ``null``: none; needed only by ``geometry.init: hull``).
         file: the JSON file of a ``transforms`` capture (frames' ``file_path`` relative to ``data.root``).
-        normalize: move the world so the scene centre is the origin (where the SfM points that the views
-            see near their image centres are, else the cameras' look-at point), z is the cameras' mean up
-            direction and their median distance to the centre is ``radius`` (the units the learning rates
-            and ``geometry.bbox`` were set in; :mod:`nsplat.tasks.neural.frame`).
+        normalize: move the world so the scene centre is the origin, z the cameras' up and their median distance
+            to the centre ``radius`` (the units of the learning rates and ``geometry.bbox``;
+            :mod:`nsplat.tasks.neural.frame`).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
             sphere; :func:`nsplat.tasks.neural.capture.with_capture_render`).
         cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
@@ -219,10 +218,8 @@ class GeometryConfig:
         sh_degree: degree (1..3) of the view-dependent colour when ``optim.shading`` is ``sh``
             (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
         sfm: :class:`SfmInitConfig`. background: :class:`BackgroundConfig` (points added to the initial ones).
-        stall_epochs: stop with an error naming what is wrong when, at the first validation (``log.validate``)
-            at or after this many epochs (and 100 fitter steps), the val PSNR has risen less than 1 dB from the initial surfels' and
-            is less than 1 dB above a flat image of the val views' mean colour: nothing is being learnt
-            (0: no check; :func:`nsplat.tasks.neural.geometry.fit_geometry`).
+        stall_epochs: stop with an error when, at the first validation after this many epochs and 100 steps,
+            the val PSNR is under 1 dB above both the start's and a flat image's (0: no check; docs/capture.md).
     """
 
     init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
