@@ -131,10 +131,10 @@ def train(root: Path, run: Path) -> dict:
         return {"returncode": 1, "error": str(err)}
 
 
-def frame_of(root: Path) -> dict:
+def frame_of(root: Path) -> tuple[dict, torch.Tensor]:
     """The training frame ``configs/colmap.yaml`` finds for the SfM output at ``root`` (no training): its
     diagnosis, the registered images and the SfM points' median distance from the SfM world's origin (COLMAP
-    centres its world on the cameras) in camera distances."""
+    centres its world on the cameras) in camera distances; and the cameras in it (``[V,4,4]``, by name)."""
     cap = load_colmap(root, downscale=4)
     every = PosedViews(images=torch.empty(len(cap.train) + len(cap.test), cap.train.height, cap.train.width, 0),
                        viewmats=torch.cat([cap.train.viewmats, cap.test.viewmats]),
@@ -143,7 +143,8 @@ def frame_of(root: Path) -> dict:
     out = frame.diagnosis()
     out["registered"] = len(every)
     out["points_from_sfm_origin_radii"] = float(cap.points.xyz.double().median(0).values.norm()) / frame.radius
-    return out
+    order = sorted(range(len(every)), key=lambda i: every.names[i])
+    return out, frame.viewmats(every.viewmats)[order]
 
 
 def result(root: Path, run: Path, ran: dict) -> dict:
@@ -186,7 +187,13 @@ def main() -> None:
                 rows[root.name] = result(root, run, {"returncode": 0 if (run / "finished.json").is_file() else None})
             continue
         rows[root.name] = result(root, run, train(root, run))
-    frames = {root.name: frame_of(root) for root in sorted(scene.glob("sfm-*")) if (root / "sfm.json").is_file()}
+    frames, cams = {}, {}
+    for root in sorted(scene.glob("sfm-*")):
+        if (root / "sfm.json").is_file():
+            frames[root.name], cams[root.name] = frame_of(root)
+    for name in frames:  # a moved SfM world: its training-frame cameras against the original's
+        if "-sim" in name and cams[name].shape == cams[name.split("-sim")[0]].shape:
+            frames[name]["cameras_max_diff_vs_unmoved"] = float((cams[name] - cams[name.split("-sim")[0]]).abs().max())
     table = markdown(["SfM run", "registered / photos", "SfM points", "exit", "stage 1 test PSNR", "test PSNR", "train wall s"],
                      [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
                        max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
