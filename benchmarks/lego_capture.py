@@ -183,8 +183,10 @@ def main() -> None:
     for root in roots:
         run = args.runs / root.name
         if args.report:
-            if (run / "eval_test" / "metrics.json").is_file() or (run / "capture_frame.json").is_file():
-                rows[root.name] = result(root, run, {"returncode": 0 if (run / "finished.json").is_file() else None})
+            if (run / "capture_frame.json").is_file():
+                done = (run / "finished.json").is_file()  # wall time from the run folder's first and last file
+                wall = (run / "finished.json").stat().st_mtime - (run / "config.yaml").stat().st_mtime if done else None
+                rows[root.name] = result(root, run, {"returncode": 0 if done else None, "wall_s": wall})
             continue
         rows[root.name] = result(root, run, train(root, run))
     frames, cams = {}, {}
