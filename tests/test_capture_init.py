@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from nsplat.cameras import camera_centres, look_at
-from nsplat.tasks.neural.background import (depth_range, fibonacci_sphere, fit_sphere, project, scene_frame,
-                                            sphere_background)
+from nsplat.tasks.neural.background import depth_range, fibonacci_sphere, fit_sphere, project, sphere_background
+from nsplat.tasks.neural.frame import look_at_point
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
 from nsplat.tasks.neural.sfm_init import fill_box, fill_points, isolated, plane_normals, reliable, sfm_surfels
@@ -102,14 +102,15 @@ def test_too_few_reliable_points_is_a_clear_error():
         sfm_surfels(pts, torch.zeros(1, 3))
 
 
-def test_scene_frame_finds_the_look_at_point_and_radius():
+def test_look_at_point_is_where_the_optical_axes_meet():
     V = _cameras(radius=4.0, height=3.0)
     shift = torch.tensor([0.5, -0.2, 0.3], dtype=torch.float64)
     V2 = V.clone()
     V2[:, :3, 3] = V[:, :3, 3] - (V[:, :3, :3] @ shift)  # the same rig moved by +shift
-    centre, radius = scene_frame(V2)
+    centre, spread = look_at_point(V2)
     assert torch.allclose(centre, shift, atol=1e-9)
-    assert radius == pytest.approx(5.0, rel=1e-9)
+    assert (camera_centres(V2.double()) - centre).norm(dim=1).median().item() == pytest.approx(5.0, rel=1e-9)
+    assert 0.1 < spread <= 2 / 3
     assert torch.allclose(camera_centres(V2.double()).mean(0)[:2], shift[:2], atol=1e-9)
 
 
@@ -150,7 +151,7 @@ def test_depth_range_brackets_the_points_and_the_background():
     g = torch.Generator().manual_seed(0)
     pts = torch.rand(500, 3, generator=g) - 0.5            # a unit cube about the origin, cameras 3 away
     pts[0] = torch.tensor([2.0, 0.0, 0.0])                 # one point 1 unit in front of the camera at (3, 0, 0)
-    near, far = depth_range(pts, views, far_radius=20.0)
+    near, far = depth_range(pts, views, torch.zeros(3), far_radius=20.0)
     assert near == pytest.approx(0.5, rel=1e-5)            # half the smallest depth
     assert far >= 2 * (3.0 + 20.0) - 1e-6
 

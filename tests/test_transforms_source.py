@@ -113,7 +113,7 @@ def test_auto_start_uses_ply_file_path_moved_with_the_cameras_then_the_masks(sce
     prep = prepare(cfg)
     start = initial_geometry(cfg, load_views(cfg, "train", torch.device("cpu")), seed=0)
     pts = start.means.detach()[:300].double()
-    want = prep.scale * (torch.from_numpy(xyz) - prep.centre)
+    want = prep.to_training(torch.from_numpy(xyz)).double()
     assert torch.allclose(pts, want, atol=1e-4)  # the same similarity as the cameras
     radius = float(camera_centres(prep.splits["train"].viewmats.double()).norm(dim=1).median())
     assert radius == pytest.approx(cfg.data.capture.radius, rel=0.2)  # the training frame: cameras about 3.2 out

@@ -9,8 +9,7 @@ ordinary points of the scene: the stage-1 fitter and the stage-2 features learn 
 the same model serves both stages (a background feature map given to the U-Net would exist in stage 2
 only). Why this one, measured: docs/results.md ("Your own capture").
 
-:func:`scene_frame` gives the centre and camera radius of a capture from its poses alone;
-:func:`fit_sphere` the sphere through the distant SfM points; :func:`depth_range` the near/far planes from
+:func:`fit_sphere` gives the sphere through the distant SfM points; :func:`depth_range` the near/far planes from
 the SfM points' depths.
 """
 from __future__ import annotations
@@ -22,16 +21,6 @@ import torch.nn.functional as F
 
 from nsplat.cameras import camera_centres
 from nsplat.data.views import PosedViews
-
-
-def scene_frame(viewmats: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """``(centre [3] float64, radius)`` of the cameras ``viewmats [V,4,4]``: the point nearest (least squares)
-    to all optical axes, and the median distance of the camera centres to it."""
-    C = camera_centres(viewmats.double())
-    axis = viewmats[:, 2, :3].double()                          # viewing directions (third row of R)
-    P = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]
-    centre = torch.linalg.lstsq(P.sum(0), (P @ C[:, :, None]).sum(0)).solution[:, 0]
-    return centre, float((C - centre).norm(dim=1).median())
 
 
 def fit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, float]:
@@ -101,18 +90,17 @@ def sphere_background(views: PosedViews, centre: torch.Tensor, radius: float, co
     return means[keep].float(), (-dirs[keep]).float(), colours[keep].clamp(0.0, 1.0), spacing[keep]
 
 
-def depth_range(points: torch.Tensor, views: PosedViews, far_radius: float, margin: float = 0.5
-                ) -> tuple[float, float]:
+def depth_range(points: torch.Tensor, views: PosedViews, centre: torch.Tensor, far_radius: float,
+                margin: float = 0.5) -> tuple[float, float]:
     """``(near, far)`` clipping planes from the SfM ``points [P,3]``: ``near`` is ``margin`` times the
     smallest depth of a point inside any of ``views`` (not a percentile: a small object in front of a
     well-textured background may own well under 1 % of the points); ``far`` is twice the farthest
-    camera-to-point distance that a background sphere of radius ``far_radius`` about the cameras' frame
+    camera-to-point distance that a background sphere of radius ``far_radius`` about the scene ``centre [3]``
     can reach."""
     _, depth, inside = project(points, views)
     d = depth[inside]
     if d.numel() == 0:
         raise ValueError("SfM points: none projects into any view; cannot set near/far")
     near = margin * float(d.min())
-    centre, _ = scene_frame(views.viewmats)
-    reach = float((camera_centres(views.viewmats.double()) - centre).norm(dim=1).max()) + far_radius
+    reach = float((camera_centres(views.viewmats.double()) - centre.double()).norm(dim=1).max()) + far_radius
     return near, 2.0 * max(reach, float(d.max()))

@@ -6,11 +6,13 @@ folder (:func:`nsplat.data.transforms_json.load_transforms`) at ``data.root`` is
 
 * **validation split**: of the training images, every ``val_every``-th from the ``val_every // 2``-th is
   held out as ``val`` (for model selection: the test views are never looked at before the end);
-* **world frame** (``normalize``): SfM's world has an arbitrary origin and scale, while the learning rates
-  and default sizes are in the units of the procedural and NeRF-synthetic scenes (cameras about 3-4 units
-  from the object). The world is moved so that the point nearest to all optical axes is the origin and
-  scaled so that the median camera distance to it is ``radius`` (a similarity: images are unchanged);
-  the SfM points move with it;
+* **world frame** (``normalize``): SfM's world has an arbitrary origin, orientation and scale, while the
+  learning rates, ``geometry.bbox`` and the default sizes are in the units of the procedural and
+  NeRF-synthetic scenes (the object about the origin, cameras about 3-4 units from it, z up). The world is
+  moved by the similarity of :func:`nsplat.tasks.neural.frame.capture_frame`: the centre is where the SfM
+  points that the views see near their image centres are (else the cameras' look-at point), the median
+  camera distance to it becomes ``radius`` and z the cameras' mean up direction (images are unchanged; the
+  SfM points move with it). The frame is the same whatever similarity SfM's world is off by;
 * **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
   (:func:`nsplat.tasks.neural.background.depth_range`: half the smallest depth, twice the farthest reach).
 """
@@ -29,8 +31,10 @@ from nsplat.data.colmap import load_colmap
 from nsplat.data.transforms_json import load_transforms, point_cloud_path
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
-from nsplat.tasks.neural.background import depth_range, fit_sphere, scene_frame
+from nsplat.errors import DataError
+from nsplat.tasks.neural.background import depth_range, fit_sphere
 from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.frame import CaptureFrame, capture_frame
 from nsplat.tasks.neural.sfm_init import reliable
 
 
@@ -41,32 +45,37 @@ class PreparedCapture:
     Attributes:
         splits: ``train``, ``val``, ``test`` :class:`PosedViews` (CPU).
         points: the SfM points (``xyz`` in the training frame), or ``None`` when the model has none.
-        centre, scale: the training frame is ``x' = scale · (x − centre)`` of the capture's world
-            (``centre [3]`` float64; zeros and 1 without ``normalize``).
+        frame: the capture's frame as found (:class:`~nsplat.tasks.neural.frame.CaptureFrame`, in the
+            capture's world; its :meth:`~CaptureFrame.diagnosis` goes to the run's ``capture_frame.json``).
+        normalized: whether the training frame is ``frame``'s (``data.capture.normalize``), else the
+            capture's world itself.
         ply: the point cloud a ``transforms.json`` names in ``ply_file_path`` (in the capture's world), or
             ``None``.
     """
 
     splits: dict[str, PosedViews]
     points: SfmPoints | None
-    centre: torch.Tensor
-    scale: float
+    frame: CaptureFrame
+    normalized: bool
     ply: Path | None = None
+
+    def to_training(self, xyz: torch.Tensor) -> torch.Tensor:
+        """World points ``xyz [N,3]`` of the capture in the training frame (float32)."""
+        return self.frame.points(xyz) if self.normalized else xyz.float()
+
+    def to_training_viewmats(self, viewmats: torch.Tensor) -> torch.Tensor:
+        """World→camera ``viewmats [B,4,4]`` of the capture's world in the training frame (float32)."""
+        return self.frame.viewmats(viewmats) if self.normalized else viewmats.float()
+
+    def centre(self) -> tuple[torch.Tensor, float]:
+        """``(centre [3] float64, radius)``: the scene centre and median camera distance to it in the
+        training frame (the origin and ``data.capture.radius`` when normalised)."""
+        if self.normalized:
+            return torch.zeros(3, dtype=torch.float64), self.frame.radius * self.frame.scale
+        return self.frame.centre, self.frame.radius
 
 
 _CACHE: dict[str, PreparedCapture] = {}
-
-
-def moved_viewmats(viewmats: torch.Tensor, centre: torch.Tensor, s: float) -> torch.Tensor:
-    """Cameras ``viewmats [B,4,4]`` in the frame ``x' = s (x − centre)``: ``[R | s (R·centre + t)]`` (float32)."""
-    V = viewmats.double().clone()
-    V[:, :3, 3] = s * (V[:, :3, :3] @ centre.double() + V[:, :3, 3])
-    return V.float()
-
-
-def _transform(views: PosedViews, centre: torch.Tensor, s: float) -> PosedViews:
-    """``views`` in the frame ``x' = s (x − centre)`` (camera units scale too)."""
-    return dataclasses.replace(views, viewmats=moved_viewmats(views.viewmats, centre, s))
 
 
 def prepare(cfg: Config) -> PreparedCapture:
@@ -91,17 +100,22 @@ def prepare(cfg: Config) -> PreparedCapture:
                           f"among the {n} training images")
     splits = {"train": cap.train.subset([i for i in range(n) if i not in val_idx]),
               "val": cap.train.subset(val_idx), "test": cap.test}
-    points = cap.points
-    centre, s = torch.zeros(3, dtype=torch.float64), 1.0
+    V = len(cap.train) + len(cap.test)   # every camera, without pixels (channels 0)
+    every = PosedViews(images=torch.empty(V, cap.train.height, cap.train.width, 0),
+                       viewmats=torch.cat([cap.train.viewmats, cap.test.viewmats]),
+                       Ks=torch.cat([cap.train.Ks, cap.test.Ks]), names=cap.train.names + cap.test.names)
+    try:
+        frame = capture_frame(every, cap.points, c.radius)
+    except ValueError as exc:
+        raise DataError(f"{root}: {exc}") from exc
+    prep = PreparedCapture(splits=splits, points=cap.points, frame=frame, normalized=c.normalize, ply=ply)
     if c.normalize:
-        centre, radius = scene_frame(torch.cat([cap.train.viewmats, cap.test.viewmats]))
-        s = c.radius / radius
-        splits = {k: _transform(v, centre, s) for k, v in splits.items()}
-        if points is not None:
-            points = dataclasses.replace(points, xyz=(s * (points.xyz.double() - centre)).float())
+        prep.splits = {k: dataclasses.replace(v, viewmats=frame.viewmats(v.viewmats)) for k, v in splits.items()}
+        if cap.points is not None:
+            prep.points = dataclasses.replace(cap.points, xyz=frame.points(cap.points.xyz))
     _CACHE.clear()
-    _CACHE[key] = PreparedCapture(splits=splits, points=points, centre=centre, scale=s, ply=ply)
-    return _CACHE[key]
+    _CACHE[key] = prep
+    return prep
 
 
 def to_training_frame(cfg: Config, viewmats: torch.Tensor) -> torch.Tensor:
@@ -109,8 +123,7 @@ def to_training_frame(cfg: Config, viewmats: torch.Tensor) -> torch.Tensor:
     the NeRF-synthetic scene's) moved into the training frame (a capture's normalisation; else as given)."""
     if not cfg.data.is_capture():
         return viewmats.float()
-    prep = prepare(cfg)
-    return moved_viewmats(viewmats, prep.centre, prep.scale)
+    return prepare(cfg).to_training_viewmats(viewmats)
 
 
 def capture_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
@@ -130,12 +143,12 @@ def with_capture_render(cfg: Config) -> Config:
     bg = cfg.geometry.background
     centres = camera_centres(prep.splits["train"].viewmats.double())
     if prep.points is not None and len(prep.points) > 0:
-        _, radius = scene_frame(prep.splits["train"].viewmats)
+        scene, radius = prep.centre()
         far_radius = radius
         if bg.model == "sphere":
             centre, sphere = background_sphere(cfg)
-            far_radius = max(sphere + float(centre.norm()), radius)
-        near, far = depth_range(prep.points.xyz, prep.splits["train"], far_radius)
+            far_radius = max(sphere + float((centre - scene).norm()), radius)
+        near, far = depth_range(prep.points.xyz, prep.splits["train"], scene, far_radius)
     elif bg.model == "sphere":
         centre, sphere = background_sphere(cfg)
         dist = (centres - centre).norm(dim=1)
@@ -148,22 +161,22 @@ def with_capture_render(cfg: Config) -> Config:
     return dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, near=near, far=far))
 
 
-#: SfM points farther than this many camera distances from the look-at point are the background.
+#: SfM points farther than this many camera distances from the scene centre are the background.
 FAR_POINTS = 1.5
 #: Fewest background points to fit the sphere to.
 MIN_FAR_POINTS = 20
 
 
 def scene_points(cfg: Config) -> SfmPoints | None:
-    """The SfM points within :data:`FAR_POINTS` camera distances of the cameras' look-at point (the scene;
+    """The SfM points within :data:`FAR_POINTS` camera distances of the scene centre (the scene;
     the rest are the background), or ``None`` when the model has no points.
 
     Used with ``geometry.sfm.background_points: false`` (measured in docs/results.md)."""
     points = prepare(cfg).points
     if points is None:
         return None
-    look_at, radius = scene_frame(prepare(cfg).splits["train"].viewmats)
-    near = (points.xyz.double() - look_at).norm(dim=1) <= FAR_POINTS * radius
+    centre, radius = prepare(cfg).centre()
+    near = (points.xyz.double() - centre).norm(dim=1) <= FAR_POINTS * radius
     return dataclasses.replace(points, xyz=points.xyz[near], rgb=points.rgb[near],
                                track_length=points.track_length[near], error=points.error[near])
 
@@ -172,17 +185,17 @@ def background_sphere(cfg: Config) -> tuple[torch.Tensor, float]:
     """``(centre [3] float64, radius)`` of the background sphere in the training frame.
 
     ``geometry.background.radius`` (camera distances) and ``centre`` when given. Otherwise from the
-    reliable SfM points farther than :data:`FAR_POINTS` camera distances from the cameras' look-at point
+    reliable SfM points farther than :data:`FAR_POINTS` camera distances from the scene centre
     (the background): the least-squares sphere through them (:func:`nsplat.tasks.neural.background.fit_sphere`; with a
     given centre, their median distance from it), as long as it encloses every camera with a margin of
     half a camera distance; else, or with fewer than :data:`MIN_FAR_POINTS` such points, a sphere about the
-    look-at point (or the given centre) through the 98th percentile of all reliable points' distances,
+    scene centre (or the given centre) through the 98th percentile of all reliable points' distances,
     times 1.05, and at least 1.5 camera distances.
     """
     bg = cfg.geometry.background
     views = prepare(cfg).splits["train"].viewmats
-    look_at, radius = scene_frame(views)
-    centre = look_at if bg.centre is None else torch.tensor(bg.centre, dtype=torch.float64)
+    scene, radius = prepare(cfg).centre()
+    centre = scene if bg.centre is None else torch.tensor(bg.centre, dtype=torch.float64)
     if bg.radius is not None:
         return centre, bg.radius * radius
     points = prepare(cfg).points
@@ -191,7 +204,7 @@ def background_sphere(cfg: Config) -> tuple[torch.Tensor, float]:
                           "give a multiple of the camera distance")
     s = cfg.geometry.sfm
     xyz = points.xyz[reliable(points, s.min_track, s.max_error)].double()
-    far = xyz[(xyz - look_at).norm(dim=1) > FAR_POINTS * radius]
+    far = xyz[(xyz - scene).norm(dim=1) > FAR_POINTS * radius]
     if len(far) >= MIN_FAR_POINTS:
         c, r = fit_sphere(far) if bg.centre is None else (centre, float((far - centre).norm(dim=1).median()))
         if r - float((camera_centres(views.double()) - c).norm(dim=1).max()) > 0.5 * radius:

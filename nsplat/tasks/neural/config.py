@@ -48,8 +48,9 @@ class CaptureConfig:
             ``sparse`` itself), coverage masks of either kind (``<masks>/<image name>.png`` or
             ``<masks>/<image name>``; ``null``: none; needed only by ``geometry.init: hull``).
         file: the JSON file of a ``transforms`` capture (frames' ``file_path`` relative to ``data.root``).
-        normalize: move the world so the cameras' common look-at point is the origin and scale it so their
-            median distance to it is ``radius`` (the units the learning rates were set in).
+        normalize: move the world so the scene centre is the origin, z the cameras' up and their median distance
+            to the centre ``radius`` (the units of the learning rates and ``geometry.bbox``;
+            :mod:`nsplat.tasks.neural.frame`).
         near_far: render near/far planes from the SfM points' depths (without points: from the background
             sphere; :func:`nsplat.tasks.neural.capture.with_capture_render`).
         cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
@@ -217,6 +218,8 @@ class GeometryConfig:
         sh_degree: degree (1..3) of the view-dependent colour when ``optim.shading`` is ``sh``
             (``3·(degree+1)²`` feature channels; the first three are the mean colour, which seeds stage 2).
         sfm: :class:`SfmInitConfig`. background: :class:`BackgroundConfig` (points added to the initial ones).
+        stall_epochs: stop with an error when, at the first validation after this many epochs and 100 steps,
+            the val PSNR is under 1 dB above both the start's and a flat image's (0: no check; docs/capture.md).
     """
 
     init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
@@ -238,6 +241,7 @@ class GeometryConfig:
     sh_degree: int = 0
     sfm: SfmInitConfig = dataclasses.field(default_factory=SfmInitConfig)
     background: BackgroundConfig = dataclasses.field(default_factory=BackgroundConfig)
+    stall_epochs: float = 3.0
 
     def channels(self) -> int:
         """Feature channels of the stage-1 scene: RGB, or RGB spherical harmonics up to ``sh_degree``."""
@@ -251,7 +255,8 @@ class GeometryConfig:
         require(all(math.isfinite(v) for v in self.bbox) and all(a < b for a, b in zip(self.bbox[:3], self.bbox[3:])),
                 "bbox", "finite (xmin, ymin, zmin, xmax, ymax, zmax) with min < max", list(self.bbox))
         require_fields(self, grid=">=8", alpha_threshold="unit", dilate=">=0", min_seen="unit", max_points=">=1",
-                       scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit")
+                       scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit",
+                       stall_epochs=">=0")
         require(all(a in ATTRIBUTES for a in self.learn), "learn", f"a subset of {list(ATTRIBUTES)}", self.learn)
         require(self.opacity is None or "opacities" not in self.learn, "learn",
                 "no 'opacities' with a constant opacity (set opacity: null for per-point opacities)", self.learn)

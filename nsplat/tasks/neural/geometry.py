@@ -1,11 +1,17 @@
 """Stage 1 of the neural task: the initial surfels (visual hull of the training silhouettes, the SfM points of
 a COLMAP capture, a PLY of this project, of 3D Gaussian splatting or of a scanner, or random points in the
 bounding box or the cameras' common view, plus, for unmasked photos, the background sphere of
-:mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`)."""
+:mod:`~nsplat.tasks.neural.background`), fitted to the training views (:func:`fit_geometry`).
+
+Two checks stop a run that cannot learn, with a :class:`~nsplat.errors.DataError` that says where the surfels
+are against the cameras' view and what to set (:func:`where_surfels`): before fitting, when most training
+views see almost none of the initial surfels (:func:`check_seen`); during fitting, when the val PSNR neither
+rises nor beats a flat image (``geometry.stall_epochs``)."""
 from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -30,8 +36,8 @@ from nsplat.gaussian_ply import is_gaussian_ply, read_gaussian_ply
 from nsplat.metrics_image import psnr
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
-from nsplat.tasks.neural.background import sphere_background
-from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points
+from nsplat.tasks.neural.background import project, sphere_background
+from nsplat.tasks.neural.capture import FAR_POINTS, background_sphere, prepare, scene_points
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.sfm_init import fill_box, fill_points, plane_normals, sfm_surfels
 
@@ -94,6 +100,7 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
                          dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
         log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
         means, normals, colours = hp.means, hp.normals, hp.colours
+    check_seen(cfg, means, train.to("cpu"), kind)
     scales = None
     opacities = torch.full((means.shape[0],), g.init_opacity)
     if kind == "sfm" and g.sfm.fill > 0:                        # the fill rows end the SfM part
@@ -197,7 +204,7 @@ def _capture_cloud(cfg: Config, seed: int) -> tuple[torch.Tensor, ...]:
     (``ply_file_path``, in the file's world), moved into the training frame (:func:`_cloud_points`)."""
     prep = prepare(cfg)
     cloud = read_point_ply(prep.ply)
-    cloud = dataclasses.replace(cloud, points=prep.scale * (cloud.points - prep.centre))
+    cloud = dataclasses.replace(cloud, points=prep.to_training(cloud.points))
     log.info("start: the point cloud of %s", prep.ply)
     return _cloud_points(cfg, cloud, torch.Generator().manual_seed(seed), prep.ply)
 
@@ -261,6 +268,20 @@ def _with_fill(cfg: Config, train: PosedViews, sfm: tuple[torch.Tensor, ...], ge
     return all_means, torch.cat([sfm[1], normals]), torch.cat([sfm[2], colours]), torch.cat([sfm[3], spacing])
 
 
+def _stalled(cfg: Config, scene: SurfelScene, train: PosedViews, epochs: float, value: float, start: float,
+             flat: float) -> str:
+    """The message of a stage 1 that learns nothing (``geometry.stall_epochs``)."""
+    means = scene.means.detach().double().cpu()
+    if cfg.data.is_capture():  # the scene's surfels, not the background sphere's
+        centre, radius = prepare(cfg).centre()
+        near = means[(means - centre).norm(dim=1) < FAR_POINTS * radius]
+        means = near if len(near) else means
+    return (f"stage 1 learns nothing: after {epochs:.1f} epochs the val PSNR is {value:.2f} dB (at the start "
+            f"{start:.2f} dB; a flat image of the val views' mean colour scores {flat:.2f} dB): "
+            f"{where_surfels(cfg, means, train.to('cpu'))}; {_advice(cfg, cfg.geometry.init)} "
+            f"(geometry.stall_epochs: 0 turns this check off)")
+
+
 def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``count`` points uniform in ``bbox`` with uniformly random unit normals and grey colour (float32)."""
     g = torch.Generator().manual_seed(seed)
@@ -268,6 +289,68 @@ def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torc
     means = lo + (hi - lo) * torch.rand(count, 3, generator=g)
     normals = torch.nn.functional.normalize(torch.randn(count, 3, generator=g), dim=-1)
     return means, normals, torch.full((count, 3), 0.5)
+
+
+#: A view sees the surfels when at least this share of them projects inside its image.
+MIN_SEEN_SHARE = 0.01
+#: Rise over the start, and margin over a flat image, below which stage 1 learns nothing (dB).
+STALL_DB = 1.0
+#: The stall check waits for at least this many fitter steps as well as ``geometry.stall_epochs`` epochs (a
+#: few dozen steps of a tiny schedule may not move the PSNR yet).
+STALL_MIN_STEPS = 100
+
+
+def share_inside(means: torch.Tensor, views: PosedViews, chunk: int = 32) -> torch.Tensor:
+    """``[V]`` float64: the share of ``means [N,3]`` in front of each camera of ``views`` and inside its image."""
+    return torch.cat([project(means, views.subset(range(i, min(i + chunk, len(views)))))[2].double().mean(1)
+                      for i in range(0, len(views), chunk)])
+
+
+def _fmt(x: torch.Tensor) -> str:
+    return "(" + ", ".join(f"{float(v):.2f}" for v in x) + ")"
+
+
+def where_surfels(cfg: Config, means: torch.Tensor, views: PosedViews) -> str:
+    """Where the surfels ``means [N,3]`` are against the cameras of ``views`` (training frame), in words: their
+    median and 5-95 % extent, ``geometry.bbox``, the share a view sees and, for a capture, the frame's centre,
+    what placed it and where the cameras aim (``capture_frame.json``)."""
+    x = means.detach().double().cpu()
+    share = share_inside(x, views)
+    lo, hi = torch.quantile(x, 0.05, dim=0), torch.quantile(x, 0.95, dim=0)
+    text = (f"the {len(x)} surfels lie about {_fmt(x.median(0).values)} (5-95 % extent {_fmt(hi - lo)}; geometry.bbox "
+            f"{list(cfg.geometry.bbox)}); a training view sees {float(share.median()):.0%} of them (median), "
+            f"{int((share < MIN_SEEN_SHARE).sum())} of {len(views)} views under {MIN_SEEN_SHARE:.0%}")
+    if cfg.data.is_capture():
+        prep = prepare(cfg)
+        centre, radius = prep.centre()
+        f = prep.frame
+        aim = prep.to_training(f.look_at[None])[0]
+        placed = {"points": "from the SfM points seen near the middle of most views",
+                  "look-at": "from the cameras' look-at point", "all points": "from all SfM points"}[f.source]
+        text += (f"; the capture's centre {_fmt(centre)} ({placed}; {f.core} such core SfM points), "
+                 f"cameras {radius:.2f} from it, aiming at {_fmt(aim)}, {f.diagnosis()['look_at_offset_radii']:.2f} "
+                 f"camera distances off")
+    return text
+
+
+def _advice(cfg: Config, kind: str) -> str:
+    if kind == "ply":
+        return "geometry.ply must hold points in the capture's (or scene's) world"
+    if cfg.data.is_capture():
+        return ("check the SfM model (data.capture.sparse picks another; a model whose poses do not match the "
+                "photos cannot train), set geometry.bbox to where the object is, geometry.background.radius "
+                "(camera distances) to the backdrop, or data.capture.normalize: false to train in SfM's own world")
+    return "check the cameras and geometry.bbox"
+
+
+def check_seen(cfg: Config, means: torch.Tensor, train: PosedViews, kind: str) -> None:
+    """Raise a :class:`DataError` when more than half the ``train`` views see under :data:`MIN_SEEN_SHARE` of
+    the initial surfels ``means [N,3]`` (before the background): nothing to fit there."""
+    share = share_inside(means.double(), train)
+    blind = int((share < MIN_SEEN_SHARE).sum())
+    if 2 * blind > len(train):
+        raise DataError(f"geometry.init: {kind}: {blind} of {len(train)} training views see almost none of the "
+                        f"initial surfels: {where_surfels(cfg, means, train)}; {_advice(cfg, kind)}")
 
 
 def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedViews | None = None) -> SurfelScene:
@@ -279,22 +362,38 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
     wall time so far, from before the initial points, without the validation renders (the time-to-quality
     curve of stage 1)."""
     t0, validating = time.perf_counter(), 0.0
+    if cfg.data.is_capture() and distributed.is_main():
+        write_json(ctx.run_dir / "capture_frame.json", prepare(cfg).frame.diagnosis())
     scene = initial_geometry(cfg, train, ctx.seed)
     g = cfg.geometry
     history: list[dict[str, float]] = []
     val_sub = val.spread(cfg.eval.val_views) if val is not None else None
+    steps_per_epoch = math.ceil(len(train) / g.optim.batch)
 
-    def validate(done: int, writer: Any) -> dict[str, float]:
-        nonlocal validating
-        t1 = time.perf_counter()
+    def render_psnr() -> float:
         with torch.no_grad():
             rgb = gateway.render_views(scene, val_sub.viewmats, val_sub.Ks, val_sub.width, val_sub.height,
                                        cfg.eval_render(), seed=cfg.eval_seed(), shading=g.optim.shading,
                                        background=val_sub.background, draws=cfg.eval.draws).clamp(0, 1)
-        value = float(psnr(rgb, val_sub.images).mean())
+        return float(psnr(rgb, val_sub.images).mean())
+
+    stall = None  # (start PSNR, flat-image PSNR) until the check has run
+    if val_sub is not None and g.log.validate > 0 and g.stall_epochs > 0 and not ctx.resume:
+        flat = val_sub.images.flatten(0, 2).mean(0).expand_as(val_sub.images)
+        stall = (render_psnr(), float(psnr(flat, val_sub.images).mean()))
+
+    def validate(done: int, writer: Any) -> dict[str, float]:
+        nonlocal validating, stall
+        t1 = time.perf_counter()
+        value = render_psnr()
         history.append({"step": done, "elapsed_s": t1 - t0 - validating, "val_psnr": value})
         write_json(ctx.run_dir / "geometry_history.json", {"history": history})
         validating += time.perf_counter() - t1
+        if stall is not None and done >= max(g.stall_epochs * steps_per_epoch, STALL_MIN_STEPS):
+            start, flat = stall
+            stall = None
+            if value < start + STALL_DB and value < flat + STALL_DB:
+                raise DataError(_stalled(cfg, scene, train, done / steps_per_epoch, value, start, flat))
         return {"psnr/val": value}
 
     if g.optim.epochs > 0:
