@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Compile-only check of the CUDA backend (no GPU, no linking): nvcc compiles ops/csrc/cuda/splat_cuda.cu and
+# Compile-only check of the CUDA backend (no GPU, no linking): nvcc compiles ops/csrc/cuda/*_cuda.cu and
 # the host compiler compiles ops/csrc/cuda/bindings.cpp to object files against this torch's headers and the
 # CUDA toolkit's. Works with a CPU-only torch wheel (its include/ tree carries the ATen/c10 CUDA headers the
 # kernels file uses). What it does NOT check: linking against libtorch_cuda/libcudart, and running anything.
@@ -42,13 +42,16 @@ fi
 
 echo "cuda_compile_check: $("$NVCC" --version | tail -1) (sm_$ARCH), CUDA_HOME=$CUDA_HOME"
 # Same flags as torch.utils.cpp_extension gives nvcc, plus the extension's own (ops/build.py).
-"$NVCC" -c ops/csrc/cuda/splat_cuda.cu -o "$OUTDIR/splat_cuda.o" -std="$STD" -O3 -lineinfo \
-  -gencode=arch=compute_$ARCH,code=sm_$ARCH --expt-relaxed-constexpr --compiler-options '-fPIC' \
-  -D__CUDA_NO_HALF_OPERATORS__ -D__CUDA_NO_HALF_CONVERSIONS__ -D__CUDA_NO_BFLOAT16_CONVERSIONS__ \
-  -D__CUDA_NO_HALF2_OPERATORS__ "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}" \
-  -Werror all-warnings -Xcompiler -Wall &
-NVCC_PID=$!
+NVCC_PIDS=()
+for kernels in splat_cuda projection_cuda; do
+  "$NVCC" -c "ops/csrc/cuda/$kernels.cu" -o "$OUTDIR/$kernels.o" -std="$STD" -O3 -lineinfo \
+    -gencode=arch=compute_$ARCH,code=sm_$ARCH --expt-relaxed-constexpr --compiler-options '-fPIC' \
+    -D__CUDA_NO_HALF_OPERATORS__ -D__CUDA_NO_HALF_CONVERSIONS__ -D__CUDA_NO_BFLOAT16_CONVERSIONS__ \
+    -D__CUDA_NO_HALF2_OPERATORS__ "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}" \
+    -Werror all-warnings -Xcompiler -Wall &
+  NVCC_PIDS+=($!)
+done
 "$CXX" -c ops/csrc/cuda/bindings.cpp -o "$OUTDIR/bindings.o" -std="$STD" -O1 -fPIC -Wall -Werror \
   "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}"
-wait "$NVCC_PID"
-echo "cuda_compile_check: OK ($(du -k "$OUTDIR/splat_cuda.o" | cut -f1) KiB kernels object, bindings object built)"
+for pid in "${NVCC_PIDS[@]}"; do wait "$pid"; done
+echo "cuda_compile_check: OK ($(du -ck "$OUTDIR"/*_cuda.o | tail -1 | cut -f1) KiB kernel objects, bindings object built)"

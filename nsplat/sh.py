@@ -133,14 +133,16 @@ def sh_view_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 def view_colour(features: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
-    """RGB of points seen from one camera (the model of :func:`view_colour_torch`; shapes there). On the CPU
-    with degree >= 1 the native kernel (``nsplat::view_colour``) computes it, elsewhere :func:`view_colour_torch`."""
+    """RGB of points seen from one camera (the model of :func:`view_colour_torch`; shapes there). On the CPU and
+    CUDA with degree >= 1 the native kernel (``nsplat::view_colour``) computes it, elsewhere
+    :func:`view_colour_torch`."""
     K = features.shape[-1] // 3
     degree = math.isqrt(K) - 1
     if features.shape[-1] != view_channels(degree):
         raise ValueError(f"features: expected 3·(L+1)² channels (3, 12, 27 or 48), got {features.shape[-1]}")
     dtypes = {features.dtype, means.dtype, viewmat.dtype}
-    if degree == 0 or features.device.type != "cpu" or len(dtypes) > 1 or dtypes - {torch.float32, torch.float64}:
+    native_device = features.device.type in ("cpu", "cuda")
+    if degree == 0 or not native_device or len(dtypes) > 1 or dtypes - {torch.float32, torch.float64}:
         return view_colour_torch(features, means, viewmat)
     return view_colour_op(features, means, viewmat, degree)
 

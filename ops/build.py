@@ -24,6 +24,8 @@ _MODULES: dict[str, ModuleType] = {}
 #: set (by `#pragma GCC target`, not by flags), lanes_dispatch.cpp picks one at run time.
 CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "view_colour_cpu.cpp",
                "lanes_dispatch.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
+#: The CUDA backend's sources (csrc/cuda): the Python module and the kernel files.
+CUDA_SOURCES = ("bindings.cpp", "splat_cuda.cu", "projection_cuda.cu")
 #: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4). The C++ standard is
 #: added by :func:`cxx_standard`.
 CPU_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")
@@ -72,7 +74,7 @@ def _load(kind: str) -> ModuleType:
         sources = [str(CSRC / "cpu" / f) for f in CPU_SOURCES]
         flags = dict(extra_cflags=[*CPU_CFLAGS, std, tag], extra_ldflags=["-fopenmp"])
     else:
-        sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "splat_cuda.cu")]
+        sources = [str(CSRC / "cuda" / f) for f in CUDA_SOURCES]
         flags = dict(extra_cflags=["-O3", std, tag], extra_cuda_cflags=["-O3", std, "-lineinfo", tag])
     target = build_dir(kind)
     digest = source_hash()

@@ -6,9 +6,9 @@ tracing, autograd for the compositor):
     nsplat::sample              per-pixel SPS sample (no gradient)
     nsplat::composite_forward   compositing of a given sample; differentiable (autograd registered)
     nsplat::composite_backward  the estimator's backward of ``composite_forward`` (its own gradient is an error)
-    nsplat::project             the EWA projection (CPU kernel; differentiable, autograd registered)
+    nsplat::project             the EWA projection (differentiable, autograd registered)
     nsplat::project_backward    its hand-derived backward
-    nsplat::view_colour         view-dependent SH colour (CPU kernel; differentiable, autograd registered)
+    nsplat::view_colour         view-dependent SH colour (differentiable, autograd registered)
     nsplat::view_colour_backward  its hand-derived backward
 
 Because these are custom ops, ``torch.compile`` traces a model containing :class:`nsplat.ops.Splatter`
@@ -196,10 +196,10 @@ torch.library.register_autograd("nsplat::composite_backward", _no_double_backwar
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The projection (CPU kernel; ops/projection.py::project_torch is its reference and the other devices' path)
+# The projection (ops/projection.py::project_torch is its reference and the path of devices without a kernel)
 
 
-@torch.library.custom_op("nsplat::project", mutates_args=(), device_types=("cpu",))
+@torch.library.custom_op("nsplat::project", mutates_args=(), device_types=("cpu", "cuda"))
 def project_op(means: Tensor, normals: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor,
                near: float, far: float, lowpass: float,
                backface_cull: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -208,8 +208,8 @@ def project_op(means: Tensor, normals: Tensor, scales: Tensor, opacities: Tensor
     Returns ``means2d [B,N,2]``, ``conics [B,N,3]``, ``amps``, ``normals_cam [B,N,3]``, ``plane_offsets``,
     ``depths``, ``sigma2``, ``valid`` (bool) and ``hazard`` (int8: 1 a visible splat overflows the dtype, 2 its
     screen covariance's determinant lies in (0, 1e-20) px⁴), ``[B,N]`` unless noted."""
-    out = native("cpu").module.project_forward(*_contiguous(means, normals, scales, opacities, viewmats, Ks),
-                                                near, far, lowpass, backface_cull)
+    out = native(means.device.type).module.project_forward(
+        *_contiguous(means, normals, scales, opacities, viewmats, Ks), near, far, lowpass, backface_cull)
     return tuple(out)
 
 
@@ -221,7 +221,7 @@ def _(means, normals, scales, opacities, viewmats, Ks, near, far, lowpass, backf
             e((B, N), dtype=torch.bool), e((B, N), dtype=torch.int8))
 
 
-@torch.library.custom_op("nsplat::project_backward", mutates_args=(), device_types=("cpu",))
+@torch.library.custom_op("nsplat::project_backward", mutates_args=(), device_types=("cpu", "cuda"))
 def project_backward_op(means: Tensor, normals: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor,
                         Ks: Tensor, near: float, far: float, lowpass: float, backface_cull: bool, g_means2d: Tensor,
                         g_conics: Tensor, g_amps: Tensor, g_normals_cam: Tensor, g_plane_offsets: Tensor,
@@ -231,7 +231,7 @@ def project_backward_op(means: Tensor, normals: Tensor, scales: Tensor, opacitie
     bitwise identical for any thread count."""
     args = _contiguous(means, normals, scales, opacities, viewmats, Ks)
     grads = _contiguous(g_means2d, g_conics, g_amps, g_normals_cam, g_plane_offsets, g_depths, g_sigma2)
-    return tuple(native("cpu").module.project_backward(*args, near, far, lowpass, backface_cull, *grads))
+    return tuple(native(means.device.type).module.project_backward(*args, near, far, lowpass, backface_cull, *grads))
 
 
 @project_backward_op.register_fake
@@ -263,14 +263,14 @@ torch.library.register_autograd("nsplat::project_backward", _no_double_backward_
 
 
 # ----------------------------------------------------------------------------------------------------------
-# View-dependent colour (CPU kernel; nsplat/sh.py::view_colour_torch is its reference and the other devices' path)
+# View-dependent colour (nsplat/sh.py::view_colour_torch is its reference and the path of devices without a kernel)
 
 
-@torch.library.custom_op("nsplat::view_colour", mutates_args=(), device_types=("cpu",))
+@torch.library.custom_op("nsplat::view_colour", mutates_args=(), device_types=("cpu", "cuda"))
 def view_colour_op(features: Tensor, means: Tensor, viewmat: Tensor, degree: int) -> Tensor:
     """RGB ``[N,3]`` of points with SH colour ``features [N, 3·(L+1)²]`` (L = ``degree``, 1..3) seen from
     ``viewmat [4,4]`` (the model of :func:`nsplat.sh.view_colour`)."""
-    return native("cpu").module.view_colour_forward(*_contiguous(features, means, viewmat), degree)
+    return native(means.device.type).module.view_colour_forward(*_contiguous(features, means, viewmat), degree)
 
 
 @view_colour_op.register_fake
@@ -278,13 +278,13 @@ def _(features, means, viewmat, degree):  # noqa: ANN001
     return means.new_empty((means.shape[0], 3))
 
 
-@torch.library.custom_op("nsplat::view_colour_backward", mutates_args=(), device_types=("cpu",))
+@torch.library.custom_op("nsplat::view_colour_backward", mutates_args=(), device_types=("cpu", "cuda"))
 def view_colour_backward_op(features: Tensor, means: Tensor, viewmat: Tensor, degree: int,
                             g_out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Gradients of :func:`view_colour_op` w.r.t. ``features, means, viewmat`` (the viewmat's summed over fixed
     blocks of points: bitwise identical for any thread count)."""
-    return tuple(native("cpu").module.view_colour_backward(*_contiguous(features, means, viewmat), degree,
-                                                           g_out.contiguous()))
+    return tuple(native(means.device.type).module.view_colour_backward(*_contiguous(features, means, viewmat), degree,
+                                                                       g_out.contiguous()))
 
 
 @view_colour_backward_op.register_fake

@@ -107,8 +107,8 @@ def project_checked(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
                     lowpass: float, backface_cull: bool = False) -> Projected:
     """:func:`project` on arguments the caller has already validated (``nsplat.ops.splat`` does): the checks of
     the inputs are skipped, the float hazards of the computation (``check_projection_numerics``) still raise.
-    On the CPU the native kernel (``nsplat::project``) computes it, elsewhere :func:`project_torch`."""
-    if means.device.type != "cpu":
+    On the CPU and CUDA the native kernel (``nsplat::project``) computes it, elsewhere :func:`project_torch`."""
+    if means.device.type not in ("cpu", "cuda"):
         return project_torch(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
                              backface_cull=backface_cull)
     m2, conics, amps, ncam, off, depths, sigma2, valid, hazard = project_op(

@@ -484,3 +484,128 @@ def test_emulated_cuda_stability_cases_equal_cpu(emulated, monkeypatch, case):
     (got, ref, proj), composited = _both(emulated, monkeypatch, sc, V, K, 16, 12, samples=8, estimator="paper")
     assert_same_sample_law(got, ref, 0.01, proj, 0, inclusion="pips")
     _assert_identical(*composited)
+
+
+# --------------------------------------------------------------------------------------------------------
+# The projection and view colour kernels (projection_cuda.cu): emulated on the host, and on a GPU
+
+PROJ_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
+
+
+def _projection_inputs(dtype: torch.dtype, N: int = 1100, B: int = 3) -> list[torch.Tensor]:
+    """Surfels ``[N]`` (more than two blocks of the camera-gradient sums) and ``B`` cameras; some points behind
+    the near plane or beyond far, some facing away (back-face culling)."""
+    sc = make_scene(N, 4, dtype=dtype)
+    V, K = make_cameras(B, 64, 48, dtype=dtype)
+    sc["means"][:10, 2] = -3.0
+    sc["means"][10:20, 2] = 40.0
+    sc["normals"][20:60, 2] *= -1.0
+    return [sc["means"], sc["normals"], sc["scales"] * torch.tensor([1.0, 1.6], dtype=dtype), sc["opacities"], V, K]
+
+
+def _projection_run(x: list[torch.Tensor], cull: bool) -> tuple[list[torch.Tensor], tuple[torch.Tensor, ...]]:
+    """``project``'s outputs and the inputs' gradients for a fixed random linear function of every output."""
+    leaves = [t.detach().clone().requires_grad_() for t in x]
+    out = project(*leaves, near=0.5, far=30.0, lowpass=0.3, backface_cull=cull)
+    g = torch.Generator().manual_seed(7)
+    loss = sum((getattr(out, f) * torch.randn(getattr(out, f).shape, generator=g, dtype=x[0].dtype)
+                .to(x[0].device)).sum() for f in PROJ_FIELDS)
+    return [getattr(out, f) for f in (*PROJ_FIELDS, "valid")], torch.autograd.grad(loss, leaves)
+
+
+def _view_colour_inputs(degree: int, dtype: torch.dtype, N: int = 1100) -> list[torch.Tensor]:
+    g = torch.Generator().manual_seed(degree)
+    features = torch.randn(N, 3 * (degree + 1) ** 2, generator=g, dtype=dtype) * 0.4
+    features[:, :3] += 0.3  # some colours clamp at 0, most do not
+    V, _ = make_cameras(2, 32, 32, dtype=dtype)
+    return [features, torch.rand(N, 3, generator=g, dtype=dtype) - 0.5, V[1]]
+
+
+def _view_colour_run(x: list[torch.Tensor]) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    from nsplat.sh import view_colour
+
+    leaves = [t.detach().clone().requires_grad_() for t in x]
+    out = view_colour(*leaves)
+    w = torch.randn(out.shape, generator=torch.Generator().manual_seed(3), dtype=out.dtype).to(out.device)
+    return out, torch.autograd.grad((out * w).sum(), leaves)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_emulated_cuda_projection_equals_cpu(emulated, monkeypatch, dtype, cull):
+    """The projection's CUDA launch code (one thread per pair; per-point backward; camera gradients summed over
+    fixed blocks in the CPU's order) gives the CPU backend's bits, outputs and every input's gradient."""
+    x = _projection_inputs(dtype)
+    ref = _projection_run(x, cull)
+    _emulate(monkeypatch, emulated)
+    got = _projection_run(x, cull)
+    monkeypatch.undo()
+    assert 0 < int(ref[0][-1].sum()) < ref[0][-1].numel()  # culled and visible pairs
+    for name, a, b in zip((*PROJ_FIELDS, "valid", "means", "normals", "scales", "opacities", "viewmats", "Ks"),
+                          [*got[0], *got[1]], [*ref[0], *ref[1]]):
+        assert torch.equal(a, b), name
+
+
+@pytest.mark.parametrize("cull", [False, True])
+def test_emulated_cuda_projection_matches_reference_float64(emulated, monkeypatch, cull):
+    """Its float64 outputs and gradients against autograd through ``project_torch``."""
+    from nsplat.ops.projection import project_torch
+
+    x = _projection_inputs(torch.float64, N=300)
+    _emulate(monkeypatch, emulated)
+    got = _projection_run(x, cull)
+    monkeypatch.undo()
+    monkeypatch.setattr("nsplat.ops.projection.project_checked", lambda *a, **k: project_torch(*a, **k))
+    ref = _projection_run(x, cull)
+    for name, a, b in zip((*PROJ_FIELDS, "valid", "means", "normals", "scales", "opacities", "viewmats", "Ks"),
+                          [*got[0], *got[1]], [*ref[0], *ref[1]]):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10, msg=name)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_emulated_cuda_view_colour_equals_cpu_and_reference(emulated, monkeypatch, dtype, degree):
+    """The view colour's CUDA launch code gives the CPU backend's bits; in float64 it matches autograd through
+    ``view_colour_torch``."""
+    from nsplat.sh import view_colour_torch
+
+    x = _view_colour_inputs(degree, dtype)
+    ref = _view_colour_run(x)
+    _emulate(monkeypatch, emulated)
+    got = _view_colour_run(x)
+    monkeypatch.undo()
+    assert 0 < int((ref[0] == 0).sum()) < ref[0].numel()  # the clamp is exercised
+    for name, a, b in zip(("rgb", "features", "means", "viewmat"), [got[0], *got[1]], [ref[0], *ref[1]]):
+        assert torch.equal(a, b), name
+    if dtype == torch.float64:
+        monkeypatch.setattr("nsplat.sh.view_colour", view_colour_torch)
+        torch_ref = _view_colour_run(x)
+        for name, a, b in zip(("rgb", "features", "means", "viewmat"), [got[0], *got[1]],
+                              [torch_ref[0], *torch_ref[1]]):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-11, msg=name)
+
+
+@cuda_test
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cull", [False, True])
+def test_cuda_projection_kernel_equals_cpu(dtype, cull):
+    """The native CUDA projection against the CPU kernel (same core code; FMA contraction and CUDA's sqrt
+    differ in the last bits), outputs and gradients."""
+    x = _projection_inputs(dtype, N=5000, B=4)
+    ref = _projection_run(x, cull)
+    got = _projection_run([t.to(CUDA) for t in x], cull)
+    assert torch.equal(got[0][-1].cpu(), ref[0][-1])
+    tol = 1e-10 if dtype == torch.float64 else 1e-5
+    for name, a, b in zip((*PROJ_FIELDS, "means", "normals", "scales", "opacities", "viewmats", "Ks"),
+                          [*got[0][:-1], *got[1]], [*ref[0][:-1], *ref[1]]):
+        assert rel_err(a, b) <= tol, name
+
+
+@cuda_test
+@pytest.mark.parametrize("degree", [1, 3])
+def test_cuda_view_colour_kernel_equals_cpu(degree):
+    x = _view_colour_inputs(degree, torch.float32, N=5000)
+    ref = _view_colour_run(x)
+    got = _view_colour_run([t.to(CUDA) for t in x])
+    for name, a, b in zip(("rgb", "features", "means", "viewmat"), [got[0], *got[1]], [ref[0], *ref[1]]):
+        assert rel_err(a, b) <= 1e-5, name

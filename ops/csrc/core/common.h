@@ -36,6 +36,16 @@ NS_HD float sexp(float x) { return expf(x); }
 NS_HD double sexp(double x) { return exp(x); }
 NS_HD float sabs(float x) { return fabsf(x); }
 NS_HD double sabs(double x) { return fabs(x); }
+NS_HD float ssqrt(float x) { return sqrtf(x); }
+NS_HD double ssqrt(double x) { return sqrt(x); }
+template <typename S>
+NS_HD bool sfinite(S x) {
+#if defined(__CUDA_ARCH__)
+  return isfinite(x);
+#else
+  return std::isfinite(x);
+#endif
+}
 
 // 2^(j/64), j = 0..63, rounded to nearest, and the rounding remainders (host exp below).
 constexpr double kExp2Table[64] = {

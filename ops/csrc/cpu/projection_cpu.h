@@ -4,12 +4,9 @@
 
 #include <vector>
 
-namespace nsplat {
+#include "../core/projection.h"
 
-struct ProjectSettings {
-  double near, far, lowpass;
-  bool backface_cull;
-};
+namespace nsplat {
 
 // means [N,3], normals [N,3], scales [N,2], opac [N], viewmats [B,4,4], Ks [B,3,3], one float dtype, contiguous.
 // Returns {means2d [B,N,2], conics [B,N,3], amps, normals_cam [B,N,3], plane_offsets, depths, sigma2, valid (bool),

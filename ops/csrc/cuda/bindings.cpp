@@ -1,7 +1,8 @@
 // Python bindings of the CUDA backend: argument checks, then the launchers in splat_cuda.cu.
 //
-// The module exposes the four functions of the shared API (../api.h) that the CPU module also exposes
-// (cpu/bindings.cpp), with the same signatures and semantics; ops/library.py's CUDA kernels call it.
+// The module exposes the four functions of the shared API (../api.h) and the projection and view colour that the
+// CPU module also exposes (cpu/bindings.cpp), with the same signatures and semantics; ops/library.py's CUDA
+// kernels call it.
 #include <torch/extension.h>
 
 #include "../api.h"
@@ -37,6 +38,21 @@ std::vector<at::Tensor> composite_backward_points_cuda(const at::Tensor& mu, con
                                                        const at::Tensor& wf, const at::Tensor& g_img,
                                                        const at::Tensor& g_depth, int64_t width, int64_t height,
                                                        int64_t estimator);
+
+// projection_cuda.cu
+std::vector<at::Tensor> project_forward_cuda(const at::Tensor& means, const at::Tensor& normals,
+                                             const at::Tensor& scales, const at::Tensor& opac,
+                                             const at::Tensor& viewmats, const at::Tensor& Ks, double near, double far,
+                                             double lowpass, bool backface_cull);
+std::vector<at::Tensor> project_backward_cuda(const at::Tensor& means, const at::Tensor& normals,
+                                              const at::Tensor& scales, const at::Tensor& opac,
+                                              const at::Tensor& viewmats, const at::Tensor& Ks, double near,
+                                              double far, double lowpass, bool backface_cull,
+                                              const std::vector<at::Tensor>& g);
+at::Tensor view_colour_forward_cuda(const at::Tensor& feat, const at::Tensor& means, const at::Tensor& viewmat,
+                                    int64_t degree);
+std::vector<at::Tensor> view_colour_backward_cuda(const at::Tensor& feat, const at::Tensor& means,
+                                                  const at::Tensor& viewmat, int64_t degree, const at::Tensor& g_out);
 
 namespace {
 
@@ -126,6 +142,42 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
                                         width, height, estimator);
 }
 
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor normals, at::Tensor scales, at::Tensor opac,
+                                        at::Tensor viewmats, at::Tensor Ks, double near, double far, double lowpass,
+                                        bool backface_cull) {
+  check_cuda({means, normals, scales, opac, viewmats, Ks});
+  check_dtype({means, normals, scales, opac, viewmats, Ks});
+  return project_forward_cuda(means, normals, scales, opac, viewmats, Ks, near, far, lowpass, backface_cull);
+}
+
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor normals, at::Tensor scales, at::Tensor opac,
+                                         at::Tensor viewmats, at::Tensor Ks, double near, double far, double lowpass,
+                                         bool backface_cull, at::Tensor g_means2d, at::Tensor g_conics,
+                                         at::Tensor g_amps, at::Tensor g_normals_cam, at::Tensor g_plane_offsets,
+                                         at::Tensor g_depths, at::Tensor g_sigma2) {
+  const std::vector<at::Tensor> g = {g_means2d, g_conics, g_amps, g_normals_cam, g_plane_offsets, g_depths, g_sigma2};
+  std::vector<at::Tensor> all = {means, normals, scales, opac, viewmats, Ks};
+  all.insert(all.end(), g.begin(), g.end());
+  check_cuda(all);
+  check_dtype(all);
+  return project_backward_cuda(means, normals, scales, opac, viewmats, Ks, near, far, lowpass, backface_cull, g);
+}
+
+at::Tensor view_colour_forward(at::Tensor feat, at::Tensor means, at::Tensor viewmat, int64_t degree) {
+  check_cuda({feat, means, viewmat});
+  check_dtype({feat, means, viewmat});
+  TORCH_CHECK(degree >= 1 && degree <= 3, "nsplat view colour (CUDA): degree 1..3");
+  return view_colour_forward_cuda(feat, means, viewmat, degree);
+}
+
+std::vector<at::Tensor> view_colour_backward(at::Tensor feat, at::Tensor means, at::Tensor viewmat, int64_t degree,
+                                             at::Tensor g_out) {
+  check_cuda({feat, means, viewmat, g_out});
+  check_dtype({feat, means, viewmat, g_out});
+  TORCH_CHECK(degree >= 1 && degree <= 3, "nsplat view colour (CUDA): degree 1..3");
+  return view_colour_backward_cuda(feat, means, viewmat, degree, g_out);
+}
+
 }  // namespace nsplat
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -133,4 +185,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CUDA)");
   m.def("composite_backward_pixels", &nsplat::composite_backward_pixels, "Backward pass 1, per pixel (CUDA)");
   m.def("composite_backward_points", &nsplat::composite_backward_points, "Backward pass 2, per point (CUDA)");
+  m.def("project_forward", &nsplat::project_forward, "EWA projection of oriented surfels (CUDA)");
+  m.def("project_backward", &nsplat::project_backward, "Backward of project_forward (CUDA)");
+  m.def("view_colour_forward", &nsplat::view_colour_forward, "View-dependent SH colour (CUDA)");
+  m.def("view_colour_backward", &nsplat::view_colour_backward, "Backward of view_colour_forward (CUDA)");
 }
