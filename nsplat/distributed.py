@@ -198,12 +198,15 @@ def all_reduce_sum(x: torch.Tensor) -> torch.Tensor:
     return y
 
 
-def all_reduce_scalars(values: Mapping[str, float]) -> dict[str, float]:
-    """Named floats summed over ranks (every rank must pass the same names in the same order)."""
+def all_reduce_scalars(values: Mapping[str, float | torch.Tensor]) -> dict[str, float | torch.Tensor]:
+    """Named scalars (floats or 0-dim tensors) summed over ranks (every rank must pass the same names in the same
+    order). Without a process group they are returned as given; with one, as 0-dim float64 tensors on the
+    group's device, so that a step's scalars reach the host only when the engine logs them."""
     if not active():
         return dict(values)
-    summed = all_reduce_sum(torch.tensor(list(values.values()), dtype=torch.float64, device=_comm_device()))
-    return dict(zip(values, summed.tolist()))
+    device = _comm_device()
+    stacked = torch.stack([torch.as_tensor(v, dtype=torch.float64).to(device) for v in values.values()])
+    return dict(zip(values, all_reduce_sum(stacked).unbind()))
 
 
 def _comm_device() -> torch.device:

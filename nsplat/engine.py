@@ -142,6 +142,13 @@ def latest_payload(run_dir: Path, resume: bool, device: torch.device | str = "cp
 
 
 Hook = Callable[[int, SummaryWriter], dict[str, float]]
+#: A step's scalars: floats or 0-dim tensors on any device (copied to the host when logged).
+Scalars = Mapping[str, "float | torch.Tensor"]
+
+
+def host_scalars(scalars: Scalars) -> dict[str, float]:
+    """``scalars`` as Python floats (one device-to-host copy per tensor on an accelerator)."""
+    return {name: float(value) for name, value in scalars.items()}
 
 
 @dataclasses.dataclass
@@ -158,14 +165,16 @@ class Engine:
     steps: int
     desc: str = "train"
 
-    def train(self, trainables: Trainables, step: Callable[[int], dict[str, float]], *, start: int = 0,
+    def train(self, trainables: Trainables, step: Callable[[int], Scalars], *, start: int = 0,
               validate: Hook | None = None, images: Hook | None = None,
               view: Callable[[], Any] | None = None) -> dict[str, float]:
-        """Run ``step(k)`` for ``k = start … steps-1``; returns the last step's scalars.
+        """Run ``step(k)`` for ``k = start … steps-1``; returns the last step's scalars (floats).
 
         Args:
             trainables: what is checkpointed (its ``extra["seconds"]`` accumulates step time).
-            step: the task's step; returns scalars (logged every ``log.every`` steps).
+            step: the task's step; returns scalars, floats or 0-dim tensors (on any device). They are copied to
+                the host only when logged (every ``log.every`` steps and the last), so a GPU step need not wait
+                for its own results; ``time/step_s`` is then the host's time per step.
             start: the first step (a resumed run's checkpoint step).
             validate: ``f(done, writer) -> scalars`` every ``log.validate`` steps (logged too).
             images: ``f(done, writer)`` every ``log.images`` steps (image summaries).
@@ -180,7 +189,7 @@ class Engine:
         writer = SummaryWriter(str(Path(self.run_dir) / "tb"), purge_step=start or None) if main else None
         bar = tqdm(total=self.steps, initial=start, desc=self.desc, dynamic_ncols=True,
                    disable=not (lg.progress and main))
-        scalars: dict[str, float] = {}
+        scalars: dict[str, float | torch.Tensor] = {}
         try:
             for k in range(start, self.steps):
                 t0 = time.perf_counter()
@@ -189,12 +198,15 @@ class Engine:
                 trainables.extra["seconds"] = float(trainables.extra.get("seconds", 0.0)) + dt
                 done, last = k + 1, k + 1 == self.steps
                 bar.update(1)
-                bar.set_postfix({n: f"{v:.4g}" for n, v in list(scalars.items())[:3]})
+                logged = lg.due(lg.every, done, last)
+                if logged:  # between logs the step's tensors stay where they are: no device-to-host copy
+                    scalars = host_scalars(scalars)
+                    bar.set_postfix({n: f"{v:.4g}" for n, v in list(scalars.items())[:3]})
                 if not main:
                     continue
                 if view is not None:
                     live.step(done, view)
-                if lg.due(lg.every, done, last):
+                if logged:
                     for name, value in scalars.items():
                         writer.add_scalar(name, value, done)
                     writer.add_scalar("time/step_s", dt, done)
@@ -209,7 +221,7 @@ class Engine:
             bar.close()
             if writer is not None:
                 writer.close()
-        return scalars
+        return host_scalars(scalars)
 
     def resume(self, trainables: Trainables, payload: Mapping[str, Any] | None) -> int:
         """Restore ``payload`` into ``trainables`` (``None``: fresh start); returns the first step to run."""

@@ -1,10 +1,10 @@
 """The CUDA backend against the CPU backend and the dense oracle (run on a machine with a CUDA device).
 
 Every GPU test skips with the reason "no CUDA device" when ``torch.cuda.is_available()`` is false. The
-last section runs everywhere: it builds ``splat_cuda.cu`` in its host emulation mode (``emulate.cpp``:
-kernels executed sequentially on the CPU, cub replaced by std algorithms) and checks its launch code against
-the CPU backend; it cannot show anything about device code generation or the GPU memory model, which only the
-GPU tests do.
+``emulated`` tests run everywhere: they build ``splat_cuda.cu`` and ``projection_cuda.cu`` in their host emulation
+mode (``emulate.cpp``: kernels executed sequentially on the CPU, cub replaced by std algorithms) and check their
+launch code against the CPU backend; they cannot show anything about device code generation or the GPU memory
+model, which only the GPU tests do.
 
 The contract between the backends (docs/op.md §4): both draw the same SPS law from the same counter-based
 uniforms, but their searches differ (the CPU walks a tile's items once for its 16 pixels, vector lane per

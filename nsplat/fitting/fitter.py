@@ -186,11 +186,11 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     start = engine.resume(t, payload)
     cap_scales(scene, cfg.max_scale)
 
-    def step(k: int) -> dict[str, float]:
+    def step(k: int) -> dict[str, float | torch.Tensor]:
         epoch, s = divmod(k, state.steps_per_epoch)
         idx = torch.randperm(len(views), generator=generator(seed, "batches", epoch))[s * cfg.batch:(s + 1) * cfg.batch]
         optimizer.zero_grad(set_to_none=True)
-        loss_sum = torch.zeros((), dtype=torch.float64)
+        loss_sum = torch.zeros((), dtype=torch.float64, device=scene.means.device)  # on the device, logged lazily
         # The rank's share of the batch's slots j (a view's seed is its global slot's), rendered in one op call
         # with one seed per view when the features need no per-camera shading and no strategy needs each
         # view's own gradient (the same samples and images as one call per view, op.md §3), else one call per
@@ -210,12 +210,12 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
                 loss = loss if term is None else loss + term
             loss = loss / view.share
             loss.backward()
-            loss_sum += loss.detach().double().cpu()
+            loss_sum += loss.detach().double()
             for strategy in strategies:
                 strategy.after_backward(state, view)
         distributed.all_reduce_grads(optimizer)
         adam_step(scene, optimizer, cfg)
-        out = distributed.all_reduce_scalars({"train/loss": float(loss_sum)})
+        out = distributed.all_reduce_scalars({"train/loss": loss_sum})
         for strategy in strategies:
             out.update(strategy.after_step(state, k))
         if state.epoch_done(k) is not None:

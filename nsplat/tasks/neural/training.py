@@ -58,7 +58,7 @@ def _chunks(share: range, chunk: int | None) -> list[range]:
     return [share[i:i + size] for i in range(0, len(share), size)]
 
 
-def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dict[str, float]:
+def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dict[str, float | torch.Tensor]:
     """The task contract's ``step``: one stage-2 step (discriminator, then generator) on a random batch.
 
     The batch's ``B`` view slots are split across ranks (:func:`nsplat.distributed.shard`) and each rank's
@@ -86,9 +86,9 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
             logits = disc(cond, image)
         return logits.float()
 
-    sums: dict[str, float] = {}  # Σ over chunks of (chunk's share of B) × (chunk's mean)
+    sums: dict[str, float | torch.Tensor] = {}  # Σ over chunks of (chunk's share of B) × (chunk's mean), lazily
 
-    def add(name: str, value: float, w: float) -> None:
+    def add(name: str, value: torch.Tensor, w: float) -> None:
         sums[name] = sums.get(name, 0.0) + w * value
 
     use_gan = disc is not None and k >= n.gan_start_step()
@@ -103,7 +103,7 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
             cd = cond.detach()
             d_loss = discriminator_loss(judge(cd, gt), judge(cd, rgb.detach()), n.gan.mode)
             (w * d_loss).backward()
-            add("loss/disc", d_loss.item(), w)
+            add("loss/disc", d_loss.detach(), w)
         distributed.all_reduce_grads(t.optimizers["d"])
         t.optimizers["d"].step()
     t.optimizers["g"].zero_grad(set_to_none=True)
@@ -115,8 +115,8 @@ def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dic
                                 ssim_weight=n.ssim_weight, mode=n.gan.mode)
         (w * losses["total"]).backward()
         for name, v in losses.items():
-            add(f"loss/{name}", v.item(), w)
-        add("psnr/train_batch", float(psnr(rgb.detach(), gt).mean()), w)
+            add(f"loss/{name}", v.detach(), w)
+        add("psnr/train_batch", psnr(rgb.detach(), gt).mean(), w)
     distributed.all_reduce_grads(t.optimizers["g"])
     t.optimizers["g"].step()
     t.schedulers["g"].step()
