@@ -108,7 +108,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
     """Render ``[N]`` surfels into ``[B]`` cameras with the renderer ``cfg.renderer``.
 
     Args:
-        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]``.
+        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]`` (or ``[B,N,C]``,
+        per camera, with the renderer ``splat`` or ``dense``).
         viewmats ``[B,4,4]`` (OpenCV world→camera), Ks ``[B,3,3]``; width, height in pixels.
         seed: the sampled op's RNG seed (see :func:`nsplat.engine.op_seed`), or a ``[B]`` int64 tensor of one
             seed per camera (op.md §3).
@@ -147,17 +148,18 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     evaluation renders of the stochastic op, at ``draws`` times the cost.
 
     With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
-    paper's camera-relative lights (:func:`nsplat.shading.lambert`); cameras are then rendered one at
-    a time (the op takes one feature tensor for all its cameras). Camera ``b`` uses op seed ``seed + b``.
-    With ``shading="sh"`` the features are view-dependent RGB (spherical harmonics,
-    :func:`nsplat.sh.view_colour`), also evaluated and rendered per camera. With ``shading="none"`` the
-    cameras are rendered in one op call, and ``seed`` may be a ``[B]`` int64 tensor of one seed per camera
-    (camera ``b`` then samples as the only camera of a call with seed ``seed[b]``, op.md §3).
+    paper's camera-relative lights (:func:`nsplat.shading.lambert`); with ``shading="sh"`` they are
+    view-dependent RGB (spherical harmonics, :func:`nsplat.sh.view_colour`) evaluated per camera. Either way the
+    cameras' colours ``[B,N,3]`` are rendered in one op call (per-camera features) with the renderer ``splat``,
+    camera ``b`` with op seed ``seed + b`` (as the only camera of a call with that seed; other renderers: one call
+    per camera). With ``shading="none"`` the cameras are rendered in one op call. ``seed`` may be a ``[B]`` int64
+    tensor of one seed per camera (camera ``b`` then samples as the only camera of a call with seed ``seed[b]``,
+    op.md §3).
     """
     if draws < 1:
         raise ValueError(f"draws: expected an int >= 1, got {draws}")
-    if isinstance(seed, torch.Tensor) and (shading != "none" or draws > 1):
-        raise ValueError("seed: one seed per camera needs shading 'none' and one draw")
+    if isinstance(seed, torch.Tensor) and draws > 1:
+        raise ValueError("seed: one seed per camera needs one draw")
     if draws > 1:
         runs = [render_views(scene, viewmats, Ks, width, height, cfg, seed=seed + j * DRAW_STRIDE, shading=shading,
                              background=background, with_alpha=True) for j in range(draws)]
@@ -167,14 +169,19 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
         outs = [render(scene.means, scene.normals, scene.scales, scene.opacities, scene.features, viewmats, Ks,
                        width, height, cfg, seed=seed, background=background)]
     else:
-        normals, means = scene.normals, scene.means
+        normals, means, B = scene.normals, scene.means, viewmats.shape[0]
         if shading == "sh":
-            shaded = [view_colour(scene.features, means, viewmats[b]) for b in range(viewmats.shape[0])]
+            shaded = torch.stack([view_colour(scene.features, means, viewmats[b]) for b in range(B)])
         else:
             shaded = lambert(scene.features, normals, viewmats)
-        outs = [render(means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
-                       Ks[b:b + 1], width, height, cfg, seed=seed + b, background=background)
-                for b in range(viewmats.shape[0])]
+        seeds = seed if isinstance(seed, torch.Tensor) else torch.tensor([seed + b for b in range(B)])
+        if cfg.renderer == "splat":
+            outs = [render(means, normals, scene.scales, scene.opacities, shaded, viewmats, Ks, width, height, cfg,
+                           seed=seeds, background=background)]
+        else:
+            outs = [render(means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
+                           Ks[b:b + 1], width, height, cfg, seed=int(seeds[b]), background=background)
+                    for b in range(B)]
     image = torch.cat([o.image for o in outs], 0)
     return (image, torch.cat([o.alpha for o in outs], 0)) if with_alpha else image
 

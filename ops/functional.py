@@ -122,7 +122,8 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
     differentiated; ``Ks`` gets its gradient through the projection.
 
     Args:
-        proj: projected surfels ``[B,N,...]``. features: ``[N,C]``. Ks: ``[B,3,3]``.
+        proj: projected surfels ``[B,N,...]``. features: ``[N,C]``, or ``[B,N,C]`` (camera ``b`` sees
+            ``features[b]``; their gradient is per camera too). Ks: ``[B,3,3]``.
         indices: ``[B,H,W,m]`` int32. probs: ``[B,H,W,m]`` inclusion probabilities (dtype of proj).
         background: ``[C]`` (zeros if None). composite: "alpha" | "additive".
         estimator: "ht" | "ht-pips" | "paper" | "sampled".
@@ -158,7 +159,7 @@ def _composite_op(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, ind
                   probs: torch.Tensor, background: torch.Tensor | None, composite: str, estimator: str,
                   deterministic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The native compositor on validated arguments (:func:`composite_sample` without its checks)."""
-    bg = background if background is not None else features.new_zeros(features.shape[1])
+    bg = background if background is not None else features.new_zeros(features.shape[-1])
     image, alpha, depth = composite_forward_op(proj.means2d, proj.conics, proj.amps, proj.normals_cam,
                                                proj.plane_offsets, proj.depths, Ks.detach(), features, bg,
                                                indices, probs.detach(), COMPOSITES.index(composite),
@@ -186,7 +187,8 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
     Args:
         means: ``[N,3]`` world positions. normals: ``[N,3]`` non-zero (normalised inside).
         scales: ``[N,2]`` > 0, tangent standard deviations (world units) along the normal's frame.
-        opacities: ``[N]`` in [0, 1]. features: ``[N,C]`` any C >= 1 (RGB or learned, signed).
+        opacities: ``[N]`` in [0, 1]. features: ``[N,C]`` any C >= 1 (RGB or learned, signed), or ``[B,N,C]``:
+            camera ``b`` sees ``features[b]`` (view-dependent colour of several views in one call).
         viewmats: ``[B,4,4]``. Ks: ``[B,3,3]``. width, height: image size (>= 1).
         samples: per-pixel sample size m (>= 1). eps: probability bound that a pixel's sample differs
             from exact SPS (0 < eps <= 1).

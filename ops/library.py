@@ -115,7 +115,8 @@ def composite_forward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off:
                          feat: Tensor, bg: Tensor, indices: Tensor, probs: Tensor, mode: int, estimator: int,
                          deterministic: bool) -> tuple[Tensor, Tensor, Tensor]:
     """Composite the sample ``indices``/``probs [B,H,W,m]`` of the projected surfels (``[B,N,...]`` as in
-    :func:`sample_op`) with features ``feat [N,C]`` over ``bg [C]``; ``mode`` 0 alpha, 1 additive.
+    :func:`sample_op`) with features ``feat [N,C]`` (every camera's) or ``[B,N,C]`` (camera ``b`` sees ``feat[b]``)
+    over ``bg [C]``; ``mode`` 0 alpha, 1 additive.
     ``estimator`` (native code) and ``deterministic`` only select the backward.
     Returns ``image [B,H,W,C]``, ``alpha [B,H,W,1]``, ``depth [B,H,W,1]``."""
     args = _contiguous(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs)
@@ -125,7 +126,7 @@ def composite_forward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off:
 @composite_forward_op.register_fake
 def _(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, mode, estimator, deterministic):  # noqa: ANN001
     B, H, W, _ = indices.shape
-    return mu.new_empty((B, H, W, feat.shape[1])), mu.new_empty((B, H, W, 1)), mu.new_empty((B, H, W, 1))
+    return mu.new_empty((B, H, W, feat.shape[-1])), mu.new_empty((B, H, W, 1)), mu.new_empty((B, H, W, 1))
 
 
 @torch.library.custom_op("nsplat::composite_backward", mutates_args=(), device_types=("cpu", "cuda"))
@@ -152,7 +153,8 @@ def composite_backward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off
     dalpha, wf, bgw = ops.composite_backward_pixels(*params, Kc, feat_c, bg_c, idx, pr, mode, estimator, g_img,
                                                     g_alpha, g_depth)
     entries, seg = _entries_by_point(idx, amp.shape[1], nat)
-    grads = ops.composite_backward_points(*params, Kc, entries, seg, dalpha, wf, g_img, g_depth, W, H, estimator)
+    grads = ops.composite_backward_points(*params, Kc, entries, seg, dalpha, wf, g_img, g_depth, W, H, estimator,
+                                          feat.dim() == 3)
     return (*grads, (bgw * g_img).sum(dim=(0, 1, 2)))
 
 
@@ -172,7 +174,7 @@ def _backward_forward(ctx, g_img, g_alpha, g_depth):  # noqa: ANN001
     mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs = ctx.saved_tensors
     B, H, W, _ = indices.shape
     if g_img is None:
-        g_img = mu.new_zeros((B, H, W, feat.shape[1]))
+        g_img = mu.new_zeros((B, H, W, feat.shape[-1]))
     if g_alpha is None:
         g_alpha = mu.new_zeros((B, H, W, 1))
     if g_depth is None:

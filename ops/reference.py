@@ -77,8 +77,8 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
     every point evaluated at every pixel, no sampling and no floor. Differentiable by autograd.
 
     Args:
-        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]``,
-        viewmats ``[B,4,4]``, Ks ``[B,3,3]``: as in :func:`nsplat.ops.splat`.
+        means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]`` or
+        ``[B,N,C]``, viewmats ``[B,4,4]``, Ks ``[B,3,3]``: as in :func:`nsplat.ops.splat`.
         backface_cull: cull surfels facing away from each camera, as :func:`nsplat.ops.splat`.
         max_chunk: pixels × points × channels evaluated at once (bounds peak memory).
 
@@ -108,7 +108,8 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
             p = pix[s:s + chunk]
             alpha = splat_alpha(p, proj.means2d[b], proj.conics[b], proj.amps[b])
             depth = splat_depth(rays[b, s:s + chunk], proj.normals_cam[b], proj.plane_offsets[b], proj.depths[b])
-            img, a, d = _composite_dense(alpha, depth, features, bg, composite)
+            img, a, d = _composite_dense(alpha, depth, features if features.dim() == 2 else features[b], bg,
+                                         composite)
             for lst, v in zip(per_cam, (img, a, d, alpha.sum(-1, keepdim=True).detach())):
                 lst.append(v)
         for lst, pc in zip(outs, per_cam):

@@ -94,7 +94,8 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     """Check the scene and camera tensors; returns ``(N, C, B)`` (``C = 0`` when ``features`` is None).
 
     Shapes: ``means [N,3]``, ``normals [N,3]`` (non-zero), ``scales [N,2]`` (> 0),
-    ``opacities [N]`` (in [0, 1]), ``features [N,C]``, ``viewmats [B,4,4]`` (last row 0 0 0 1, 3×3 part a
+    ``opacities [N]`` (in [0, 1]), ``features [N,C]`` or ``[B,N,C]`` (per camera), ``viewmats [B,4,4]`` (last
+    row 0 0 0 1, 3×3 part a
     rotation times a uniform scale), ``Ks [B,3,3]`` (``fx, fy > 0``, last row 0 0 1, ``K[1,0] = 0``);
     one float dtype and one device.
     """
@@ -115,17 +116,26 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     _shape("normals", normals, (N, 3), f"[N, 3] with N={N}")
     _shape("scales", scales, (N, 2), f"[N, 2] with N={N}")
     _shape("opacities", opacities, (N,), f"[N] with N={N}")
-    if features is not None and (features.dim() != 2 or features.shape[0] != N or features.shape[1] < 1):
-        raise ValueError(f"features: expected shape [N, C] with N={N} and C >= 1, got {list(features.shape)}")
     if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4) or viewmats.shape[0] < 1:
         raise ValueError(f"viewmats: expected shape [B, 4, 4] with B >= 1, got {list(viewmats.shape)}")
     B = viewmats.shape[0]
+    if features is not None:
+        check_feature_shape(features, B, N, "the cameras of viewmats")
     _shape("Ks", Ks, (B, 3, 3), f"[B, 3, 3] with B={B}")
     for n, t in zip(names, tensors):
         _finite(n, t)
     if values_checked():
         _check_geometry_values(N, normals, scales, opacities, viewmats, Ks, dtype, device)
-    return N, (features.shape[1] if features is not None else 0), B
+    return N, (features.shape[-1] if features is not None else 0), B
+
+
+def check_feature_shape(features: torch.Tensor, B: int, N: int, cameras: str) -> None:
+    """``features`` is ``[N,C]`` (every camera sees them) or ``[B,N,C]`` (camera ``b`` sees ``features[b]``)."""
+    shared = features.dim() == 2 and features.shape[0] == N
+    per_camera = features.dim() == 3 and features.shape[:2] == (B, N)
+    if not (shared or per_camera) or features.shape[-1] < 1:
+        raise ValueError(f"features: expected shape [N, C] or [B, N, C] with N={N}, B={B} ({cameras}) and C >= 1, "
+                         f"got {list(features.shape)}")
 
 
 def _check_geometry_values(N: int, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -365,9 +375,7 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
     feat = _tensor("features", features)
     if feat.dtype != dtype or feat.device != device:
         raise TypeError(f"features: expected {dtype} on {device} (as proj), got {feat.dtype} on {feat.device}")
-    if feat.dim() != 2 or feat.shape[0] != N or feat.shape[1] < 1:
-        raise ValueError(f"features: expected shape [N, C] with N={N} (the points of proj) and C >= 1, "
-                         f"got {list(feat.shape)}")
+    check_feature_shape(feat, B, N, "the cameras of proj")
     _finite("features", feat)
     if composite not in COMPOSITES:
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
@@ -398,10 +406,10 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
         _tensor("background", background)
         if background.dtype != dtype or background.device != device:
             raise TypeError(f"background: expected {dtype} on {device}, got {background.dtype} on {background.device}")
-        _shape("background", background, (feat.shape[1],), f"[C] with C={feat.shape[1]}")
+        _shape("background", background, (feat.shape[-1],), f"[C] with C={feat.shape[-1]}")
         _finite("background", background)
     _, H, W, m = indices.shape
-    check_allocation(B=B, N=N, C=feat.shape[1], width=W, height=H, samples=m, dtype=dtype, device=device,
+    check_allocation(B=B, N=N, C=feat.shape[-1], width=W, height=H, samples=m, dtype=dtype, device=device,
                      what="composite")
 
 

@@ -139,14 +139,15 @@ def test_fit_with_densification_resumes_exactly(tmp_path):
         assert torch.equal(t, resumed.state_dict()[name]), name
 
 
-def test_fit_renders_a_batch_in_one_call_with_the_per_view_gradients(tmp_path, monkeypatch):
-    """With features rendered as they are and no per-view strategy, a step's views go through one op call (one
-    seed per view): the gradients Adam steps with are those of one call per view, as a per-view strategy (here
-    a stand-in for density control) makes the fitter render them, to summation order."""
+@pytest.mark.parametrize("shading", ["none", "lambert"])
+def test_fit_renders_a_batch_in_one_call_with_the_per_view_gradients(tmp_path, monkeypatch, shading):
+    """Without a per-view strategy a step's views go through one op call (one seed per view; shaded views with
+    per-camera features): the gradients Adam steps with are those of one call per view, as a per-view strategy
+    (here a stand-in for density control) makes the fitter render them, to summation order."""
     import nsplat.fitting.fitter as fitter
     from nsplat.fitting import Strategy
 
-    cfg = FitConfig(epochs=1, batch=3, learn=_lr(0.03), reposition=OFF, shading="none")
+    cfg = FitConfig(epochs=1, batch=3, learn=_lr(0.03), reposition=OFF, shading=shading)
     rcfg = RenderConfig(renderer="splat")
     _, images, vm, Ks, _ = _tiny_problem(n=120, views=6, res=16)
     views = _views(images, vm, Ks)

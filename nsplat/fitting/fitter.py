@@ -192,11 +192,11 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         optimizer.zero_grad(set_to_none=True)
         loss_sum = torch.zeros((), dtype=torch.float64, device=scene.means.device)  # on the device, logged lazily
         # The rank's share of the batch's slots j (a view's seed is its global slot's), rendered in one op call
-        # with one seed per view when the features need no per-camera shading and no strategy needs each
-        # view's own gradient (the same samples and images as one call per view, op.md §3), else one call per
-        # view; gradients are summed over the calls and over ranks.
+        # with one seed per view (shaded views with per-camera features) when no strategy needs each view's own
+        # gradient (the same samples and images as one call per view, op.md §3), else one call per view;
+        # gradients are summed over the calls and over ranks.
         share = list(distributed.shard(idx.numel()))
-        together = cfg.shading == "none" and not any(st.per_view for st in strategies)
+        together = not any(st.per_view for st in strategies)
         for group in ([share] if together and share else [[j] for j in share]):
             v = [int(idx[j]) for j in group]
             seeds = [op_seed(seed, "fit", k * cfg.batch + j) for j in group]

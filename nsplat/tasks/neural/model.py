@@ -113,25 +113,30 @@ class NeuralRenderer(nn.Module):
 
     def feature_image(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                       seed: int | Sequence[int]) -> torch.Tensor:
-        """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``.
+        """Splatted features (and coverage) ``[B, C(+1), H, W]`` of cameras ``viewmats [B,4,4]``, in one op call.
 
-        ``seed``: one op seed for all ``B`` cameras (one op call; with ``view_rest`` one call per camera,
-        camera ``b`` with ``seed + b``), or ``B`` seeds, one per camera: one op call whose camera ``b`` samples
-        as the only camera of a call with seed ``seed[b]`` (op.md §3), so a view's samples do not depend on which
-        other views share its call (with ``view_rest``: one call per camera).
+        ``seed``: one op seed for all ``B`` cameras, or ``B`` seeds, one per camera: camera ``b`` samples as the
+        only camera of a call with seed ``seed[b]`` (op.md §3), so a view's samples do not depend on which other
+        views share its call. With ``view_rest`` each camera sees its own point features (per-camera features
+        ``[B,N,C]``) and one seed means ``seed + b`` for camera ``b`` (the truncated renderer, which takes one
+        feature tensor for all cameras: one call per camera).
         """
+        B = viewmats.shape[0]
+        per_camera = self.view_rest and B > 1
         if not isinstance(seed, int):
-            if len(seed) != viewmats.shape[0]:
-                raise ValueError(f"seed: expected {viewmats.shape[0]} per-camera seeds, got {len(seed)}")
-            if self.view_rest:  # per-camera colours: one op call per camera
-                return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(sd))
-                                  for b, sd in enumerate(seed)])
+            if len(seed) != B:
+                raise ValueError(f"seed: expected {B} per-camera seeds, got {len(seed)}")
             seed = torch.tensor([int(sd) for sd in seed], dtype=torch.int64)
+        elif per_camera:
+            seed = torch.tensor([seed + b for b in range(B)], dtype=torch.int64)
+        if per_camera and self.render_cfg.renderer == "truncated":
+            return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, int(seed[b]))
+                              for b in range(B)])
         s = self.scene
-        if self.view_rest and viewmats.shape[0] > 1:  # per-camera colours: one op call per camera, seed + b
-            return torch.cat([self.feature_image(viewmats[b:b + 1], Ks[b:b + 1], width, height, seed + b)
-                              for b in range(viewmats.shape[0])])
-        feats = self.point_features(s.features, viewmats[0])
+        if per_camera:
+            feats = torch.stack([self.point_features(s.features, viewmats[b]) for b in range(B)])
+        else:
+            feats = self.point_features(s.features, viewmats[0])
         out = gateway.render(s.means, s.normals, s.scales, s.opacities, feats, viewmats, Ks, width, height,
                              self.render_cfg, seed=seed, background=self.background)
         img = torch.cat([out.image, out.alpha], -1) if self.alpha_input else out.image

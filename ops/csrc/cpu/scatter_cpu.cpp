@@ -16,6 +16,7 @@
 #include <omp.h>
 #endif
 
+#include "../api.h"  // camera_features
 #include "../core/composite.h"
 
 namespace nsplat {
@@ -52,7 +53,8 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
                   const at::Tensor& g_img, const at::Tensor& g_alpha, const at::Tensor& g_depth,
                   std::vector<at::Tensor>& out) {
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
-  const int64_t N = amp.size(1), C = feat.size(1), P = H * W;
+  const int64_t N = amp.size(1), C = feat.size(-1), P = H * W;
+  const bool per_camera = feat.dim() == 3;  // [B,N,C]: camera b's own features, and gradients
   const int nt = scatter_threads();
   const int* idx_all = indices.data_ptr<int>();
   const bool paper = estimator == kPaper;
@@ -74,7 +76,6 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
   const S* gi = g_img.data_ptr<S>();
   const S* ga = g_alpha.data_ptr<S>();
   const S* gd = g_depth.data_ptr<S>();
-  const S* fe = feat.data_ptr<S>();
   const S* bgp = bg.data_ptr<S>();
   const S* pr = probs.data_ptr<S>();
   S* o_mu = out[0].data_ptr<S>();
@@ -91,6 +92,7 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
     for (int64_t b = 0; b < B; ++b) {
       const SplatsView<S> sv = scatter_view<S>(mu, con, amp, nrm, off, zc, b);
       const double* K = Kd.data_ptr<double>() + b * 9;
+      const S* fe = camera_features<S>(feat, b);
 #pragma omp for schedule(static)
       for (int64_t p = 0; p < P; ++p) {
         const int64_t o = b * P + p;
@@ -115,7 +117,8 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
           atomic_add(o_off + bk, a_off);
           atomic_add(o_zc + bk, a_zc);
           const S wfs = wf[j] * scale;
-          for (int64_t c = 0; c < C; ++c) atomic_add(o_feat + static_cast<int64_t>(k) * C + c, wfs * gi[o * C + c]);
+          S* of = o_feat + (per_camera ? bk : static_cast<int64_t>(k)) * C;
+          for (int64_t c = 0; c < C; ++c) atomic_add(of + c, wfs * gi[o * C + c]);
         }
       }
     }
@@ -133,12 +136,13 @@ std::vector<at::Tensor> composite_backward_scatter(at::Tensor mu, at::Tensor con
     TORCH_CHECK(t.device().is_cpu(), "nsplat CPU backend got a tensor on ", t.device());
     TORCH_CHECK(t.is_contiguous(), "nsplat CPU backend expects contiguous tensors");
   }
-  const int64_t B = amp.size(0), N = amp.size(1), C = feat.size(1);
+  check_features(feat, amp);
+  const int64_t B = amp.size(0), N = amp.size(1);
   const int64_t H = indices.size(1), W = indices.size(2);
   auto opts = mu.options();
   std::vector<at::Tensor> out = {at::zeros({B, N, 2}, opts), at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),
                                  at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),    at::zeros({B, N}, opts),
-                                 at::zeros({N, C}, opts),    at::empty({B, H, W, 1}, opts)};
+                                 at::zeros_like(feat),       at::empty({B, H, W, 1}, opts)};
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_scatter", [&] {
     scatter_impl<scalar_t>(mu, con, amp, nrm, off, zc, Kd, feat, bg, indices, probs, static_cast<int>(mode),

@@ -313,17 +313,18 @@ void composite_forward_impl(const at::Tensor& mu, const at::Tensor& con, const a
                             const at::Tensor& bg, const at::Tensor& indices, const at::Tensor& probs, int mode,
                             at::Tensor& image, at::Tensor& alpha, at::Tensor& depth) {
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
-  const int64_t C = feat.size(1), P = H * W;
+  const int64_t C = feat.size(-1), P = H * W;
   const int nt = num_threads();
   for (int64_t b = 0; b < B; ++b) {
     const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
     const double* K = Kd.data_ptr<double>() + b * 9;
+    const S* fb = camera_features<S>(feat, b);
 #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t p = 0; p < P; ++p) {
       int64_t o = b * P + p;
       double u = double(p % W) + 0.5, v = double(p / W) + 0.5;
       Ray ray = pixel_ray(K, u, v);
-      composite_pixel(sv, feat.data_ptr<S>(), static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
+      composite_pixel(sv, fb, static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
                       probs.data_ptr<S>() + o * m, static_cast<int>(m), S(u), S(v), ray, mode,
                       image.data_ptr<S>() + o * C, alpha.data_ptr<S>() + o, depth.data_ptr<S>() + o);
     }
@@ -334,7 +335,8 @@ std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Ten
                                           at::Tensor zc, at::Tensor Ks, at::Tensor feat, at::Tensor bg,
                                           at::Tensor indices, at::Tensor probs, int64_t mode) {
   check_cpu({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs});
-  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), C = feat.size(1);
+  check_features(feat, amp);
+  const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), C = feat.size(-1);
   auto opts = mu.options();
   at::Tensor image = at::empty({B, H, W, C}, opts);
   at::Tensor alpha = at::empty({B, H, W, 1}, opts);
@@ -354,18 +356,19 @@ void backward_pixels_impl(const at::Tensor& mu, const at::Tensor& con, const at:
                           int estimator, const at::Tensor& g_img, const at::Tensor& g_alpha, const at::Tensor& g_depth,
                           at::Tensor& dalpha, at::Tensor& wf, at::Tensor& bgw) {
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
-  const int64_t C = feat.size(1), P = H * W;
+  const int64_t C = feat.size(-1), P = H * W;
   const int nt = num_threads();
   for (int64_t b = 0; b < B; ++b) {
     const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
     const double* K = Kd.data_ptr<double>() + b * 9;
+    const S* fb = camera_features<S>(feat, b);
 #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t p = 0; p < P; ++p) {
       int64_t o = b * P + p;
       double u = double(p % W) + 0.5, v = double(p / W) + 0.5;
       Ray ray = pixel_ray(K, u, v);
       bgw.data_ptr<S>()[o] = composite_backward_pixel(
-          sv, feat.data_ptr<S>(), static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
+          sv, fb, static_cast<int>(C), bg.data_ptr<S>(), indices.data_ptr<int>() + o * m,
           probs.data_ptr<S>() + o * m, static_cast<int>(m), S(u), S(v), ray, mode, estimator,
           g_img.data_ptr<S>() + o * C, g_alpha.data_ptr<S>()[o], g_depth.data_ptr<S>()[o], dalpha.data_ptr<S>() + o * m,
           wf.data_ptr<S>() + o * m);
@@ -379,6 +382,7 @@ std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con,
                                                   int64_t estimator, at::Tensor g_img, at::Tensor g_alpha,
                                                   at::Tensor g_depth) {
   check_cpu({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, g_img, g_alpha, g_depth});
+  check_features(feat, amp);
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
   auto opts = mu.options();
   at::Tensor dalpha = at::zeros({B, H, W, m}, opts);
@@ -398,7 +402,7 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
                           const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd, const at::Tensor& entries,
                           const at::Tensor& seg, const at::Tensor& dalpha, const at::Tensor& wf,
                           const at::Tensor& g_img, const at::Tensor& g_depth, int64_t width, int64_t height,
-                          bool paper, std::vector<at::Tensor>& out) {
+                          bool paper, bool per_camera, std::vector<at::Tensor>& out) {
   const int64_t N = amp.size(1), m = dalpha.size(3), C = g_img.size(3), P = width * height;
   const int64_t* ent = entries.data_ptr<int64_t>();
   const int64_t* sg = seg.data_ptr<int64_t>();
@@ -446,7 +450,8 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
         o_amp[bk] = a_amp * scale;
         o_off[bk] = a_off * scale;
         o_zc[bk] = a_zc * scale;
-        for (int64_t c = 0; c < C; ++c) o_feat[k * C + c] += gf[c] * scale;
+        const int64_t fk = per_camera ? bk : k;  // [B,N,C] features: camera b's own row
+        for (int64_t c = 0; c < C; ++c) o_feat[fk * C + c] += gf[c] * scale;
       }
     }
   }
@@ -455,17 +460,18 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
 std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor nrm,
                                                   at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor entries,
                                                   at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
-                                                  at::Tensor g_depth, int64_t width, int64_t height, int64_t estimator) {
+                                                  at::Tensor g_depth, int64_t width, int64_t height, int64_t estimator,
+                                                  bool per_camera_features) {
   check_cpu({mu, con, amp, nrm, off, zc, Ks, entries, seg, dalpha, wf, g_img, g_depth});
   const int64_t B = amp.size(0), N = amp.size(1), C = g_img.size(3);
   auto opts = mu.options();
   std::vector<at::Tensor> out = {at::zeros({B, N, 2}, opts), at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),
                                  at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),    at::zeros({B, N}, opts),
-                                 at::zeros({N, C}, opts)};
+                                 per_camera_features ? at::zeros({B, N, C}, opts) : at::zeros({N, C}, opts)};
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_points", [&] {
     backward_points_impl<scalar_t>(mu, con, amp, nrm, off, zc, Kd, entries, seg, dalpha, wf, g_img, g_depth, width,
-                                   height, estimator == kPaper, out);
+                                   height, estimator == kPaper, per_camera_features, out);
   });
   return out;
 }

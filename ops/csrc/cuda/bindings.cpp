@@ -37,7 +37,7 @@ std::vector<at::Tensor> composite_backward_points_cuda(const at::Tensor& mu, con
                                                        const at::Tensor& seg, const at::Tensor& dalpha,
                                                        const at::Tensor& wf, const at::Tensor& g_img,
                                                        const at::Tensor& g_depth, int64_t width, int64_t height,
-                                                       int64_t estimator);
+                                                       int64_t estimator, bool per_camera_features);
 
 // projection_cuda.cu
 std::vector<at::Tensor> project_forward_cuda(const at::Tensor& means, const at::Tensor& normals,
@@ -109,6 +109,7 @@ std::vector<at::Tensor> composite_forward(at::Tensor mu, at::Tensor con, at::Ten
                                           at::Tensor indices, at::Tensor probs, int64_t mode) {
   check_cuda({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs});
   check_dtype({mu, con, amp, nrm, off, zc, feat, bg, probs});
+  check_features(feat, amp);
   check_points(amp);
   TORCH_CHECK(indices.scalar_type() == at::kInt && indices.dim() == 4, "nsplat: indices must be int32 [B,H,W,m]");
   return composite_forward_cuda(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, mode);
@@ -121,6 +122,7 @@ std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con,
                                                   at::Tensor g_depth) {
   check_cuda({mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, g_img, g_alpha, g_depth});
   check_dtype({mu, con, amp, nrm, off, zc, feat, bg, probs, g_img, g_alpha, g_depth});
+  check_features(feat, amp);
   check_points(amp);
   TORCH_CHECK(indices.scalar_type() == at::kInt && indices.dim() == 4, "nsplat: indices must be int32 [B,H,W,m]");
   return composite_backward_pixels_cuda(mu, con, amp, nrm, off, zc, Ks, feat, bg, indices, probs, mode, estimator,
@@ -131,7 +133,7 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
                                                   at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor entries,
                                                   at::Tensor seg, at::Tensor dalpha, at::Tensor wf, at::Tensor g_img,
                                                   at::Tensor g_depth, int64_t width, int64_t height,
-                                                  int64_t estimator) {
+                                                  int64_t estimator, bool per_camera_features) {
   check_cuda({mu, con, amp, nrm, off, zc, Ks, entries, seg, dalpha, wf, g_img, g_depth});
   check_dtype({mu, con, amp, nrm, off, zc, dalpha, wf, g_img, g_depth});
   check_points(amp);
@@ -139,7 +141,7 @@ std::vector<at::Tensor> composite_backward_points(at::Tensor mu, at::Tensor con,
               "nsplat: entries and seg must be int64");
   TORCH_CHECK(seg.numel() == amp.size(1) + 1, "nsplat: seg must have N + 1 entries");
   return composite_backward_points_cuda(mu, con, amp, nrm, off, zc, Ks, entries, seg, dalpha, wf, g_img, g_depth,
-                                        width, height, estimator);
+                                        width, height, estimator, per_camera_features);
 }
 
 std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor normals, at::Tensor scales, at::Tensor opac,

@@ -367,14 +367,14 @@ __global__ void __launch_bounds__(kPixelThreads)
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     composite_forward_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const S* __restrict__ feat, int C,
-                             const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
+                             int64_t feat_stride, const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
                              int m, int64_t W, int64_t P, int64_t BP, int mode, S* __restrict__ image,
                              S* __restrict__ alpha, S* __restrict__ depth) {
   NS_GRID_STRIDE(o, BP) {
     const int64_t b = o / P, p = o % P;
     const double u = static_cast<double>(p % W) + 0.5, v = static_cast<double>(p / W) + 0.5;
     const Ray ray = pixel_ray(Kd + b * 9, u, v);
-    composite_pixel(base.camera(b), feat, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray, mode,
+    composite_pixel(base.camera(b), feat + b * feat_stride, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray, mode,
                     image + o * C, alpha + o, depth + o);
   }
 }
@@ -382,7 +382,7 @@ __global__ void __launch_bounds__(kPixelThreads)
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     backward_pixels_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const S* __restrict__ feat, int C,
-                           const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
+                           int64_t feat_stride, const S* __restrict__ bg, const int* __restrict__ indices, const S* __restrict__ probs,
                            int m, int64_t W, int64_t P, int64_t BP, int mode, int estimator,
                            const S* __restrict__ g_img, const S* __restrict__ g_alpha, const S* __restrict__ g_depth,
                            S* __restrict__ dalpha, S* __restrict__ wf, S* __restrict__ bgw) {
@@ -390,7 +390,7 @@ __global__ void __launch_bounds__(kPixelThreads)
     const int64_t b = o / P, p = o % P;
     const double u = static_cast<double>(p % W) + 0.5, v = static_cast<double>(p / W) + 0.5;
     const Ray ray = pixel_ray(Kd + b * 9, u, v);
-    bgw[o] = composite_backward_pixel(base.camera(b), feat, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray,
+    bgw[o] = composite_backward_pixel(base.camera(b), feat + b * feat_stride, C, bg, indices + o * m, probs + o * m, m, S(u), S(v), ray,
                                       mode, estimator, g_img + o * C, g_alpha[o], g_depth[o], dalpha + o * m,
                                       wf + o * m);
   }
@@ -410,7 +410,7 @@ __global__ void __launch_bounds__(kPixelThreads)
     backward_points_kernel(SplatsBase<S> base, const double* __restrict__ Kd, const int64_t* __restrict__ ent,
                            const int64_t* __restrict__ sg, const S* __restrict__ da, const S* __restrict__ w,
                            const S* __restrict__ gi, const S* __restrict__ gd, int64_t m, int64_t C, int64_t width,
-                           int64_t P, bool paper, PointGrads<S> out) {
+                           int64_t P, bool paper, bool per_camera, PointGrads<S> out) {
   const int64_t N = base.N, Pm = P * m;
   NS_GRID_STRIDE(k, N) {
     int64_t e = sg[k];
@@ -440,6 +440,7 @@ __global__ void __launch_bounds__(kPixelThreads)
       const int64_t e1 = e;
       const S scale = paper ? S(1) / S(count) : S(1);
       const int64_t bk = b * N + k;
+      S* feat_out = out.feat + (per_camera ? bk : k) * C;  // [B,N,C] features: camera b's own row
       for (int c = 0; c < 2; ++c) out.mu[bk * 2 + c] = a_mu[c] * scale;
       for (int c = 0; c < 3; ++c) out.con[bk * 3 + c] = a_con[c] * scale;
       for (int c = 0; c < 3; ++c) out.nrm[bk * 3 + c] = a_nrm[c] * scale;
@@ -448,7 +449,7 @@ __global__ void __launch_bounds__(kPixelThreads)
       out.zc[bk] = a_zc * scale;
 #pragma unroll
       for (int c = 0; c < kFeatChunk; ++c)
-        if (c < C) out.feat[k * C + c] += gf[c] * scale;
+        if (c < C) feat_out[c] += gf[c] * scale;
       // Remaining channels, kFeatChunk at a time, over the same entries.
       for (int64_t c0 = kFeatChunk; c0 < C; c0 += kFeatChunk) {
 #pragma unroll
@@ -462,7 +463,7 @@ __global__ void __launch_bounds__(kPixelThreads)
         }
 #pragma unroll
         for (int c = 0; c < kFeatChunk; ++c)
-          if (c0 + c < C) out.feat[k * C + c0 + c] += gf[c] * scale;
+          if (c0 + c < C) feat_out[c0 + c] += gf[c] * scale;
       }
     }
   }
@@ -556,7 +557,8 @@ std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::T
   const DeviceGuard guard(mu.device());
   const Stream stream = current_stream();
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
-  const int64_t C = feat.size(1), P = H * W;
+  const int64_t C = feat.size(-1), P = H * W;
+  const int64_t feat_stride = feat.dim() == 3 ? amp.size(1) * C : 0;  // [B,N,C]: camera b reads feat[b]
   auto opts = mu.options();
   at::Tensor image = at::empty({B, H, W, C}, opts);
   at::Tensor alpha = at::empty({B, H, W, 1}, opts);
@@ -567,7 +569,7 @@ std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::T
     using S = scalar_t;
     NS_LAUNCH(composite_forward_kernel<S>, blocks_for(B * P, kPixelThreads), kPixelThreads, stream,
         splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), feat.data_ptr<S>(), static_cast<int>(C),
-        bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
+        feat_stride, bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
         static_cast<int>(mode), image.data_ptr<S>(), alpha.data_ptr<S>(), depth.data_ptr<S>());
     NS_LAUNCH_CHECK();
   });
@@ -585,7 +587,8 @@ std::vector<at::Tensor> composite_backward_pixels_cuda(const at::Tensor& mu, con
   const DeviceGuard guard(mu.device());
   const Stream stream = current_stream();
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
-  const int64_t C = feat.size(1), P = H * W;
+  const int64_t C = feat.size(-1), P = H * W;
+  const int64_t feat_stride = feat.dim() == 3 ? amp.size(1) * C : 0;  // [B,N,C]: camera b reads feat[b]
   auto opts = mu.options();
   at::Tensor dalpha = at::zeros({B, H, W, m}, opts);
   at::Tensor wf = at::zeros({B, H, W, m}, opts);
@@ -596,7 +599,7 @@ std::vector<at::Tensor> composite_backward_pixels_cuda(const at::Tensor& mu, con
     using S = scalar_t;
     NS_LAUNCH(backward_pixels_kernel<S>, blocks_for(B * P, kPixelThreads), kPixelThreads, stream,
         splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), feat.data_ptr<S>(), static_cast<int>(C),
-        bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
+        feat_stride, bg.data_ptr<S>(), indices.data_ptr<int>(), probs.data_ptr<S>(), static_cast<int>(m), W, P, B * P,
         static_cast<int>(mode), static_cast<int>(estimator), g_img.data_ptr<S>(), g_alpha.data_ptr<S>(),
         g_depth.data_ptr<S>(), dalpha.data_ptr<S>(), wf.data_ptr<S>(), bgw.data_ptr<S>());
     NS_LAUNCH_CHECK();
@@ -611,14 +614,14 @@ std::vector<at::Tensor> composite_backward_points_cuda(const at::Tensor& mu, con
                                                        const at::Tensor& seg, const at::Tensor& dalpha,
                                                        const at::Tensor& wf, const at::Tensor& g_img,
                                                        const at::Tensor& g_depth, int64_t width, int64_t height,
-                                                       int64_t estimator) {
+                                                       int64_t estimator, bool per_camera_features) {
   const DeviceGuard guard(mu.device());
   const Stream stream = current_stream();
   const int64_t B = amp.size(0), N = amp.size(1), C = g_img.size(3), m = dalpha.size(3), P = width * height;
   auto opts = mu.options();
   std::vector<at::Tensor> out = {at::zeros({B, N, 2}, opts), at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),
                                  at::zeros({B, N, 3}, opts), at::zeros({B, N}, opts),    at::zeros({B, N}, opts),
-                                 at::zeros({N, C}, opts)};
+                                 per_camera_features ? at::zeros({B, N, C}, opts) : at::zeros({N, C}, opts)};
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   if (N == 0 || entries.numel() == 0) return out;
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_points_cuda", [&] {
@@ -628,7 +631,7 @@ std::vector<at::Tensor> composite_backward_points_cuda(const at::Tensor& mu, con
     NS_LAUNCH(backward_points_kernel<S>, blocks_for(N, kPixelThreads), kPixelThreads, stream,
         splats_base<S>(mu, con, amp, nrm, off, zc), Kd.data_ptr<double>(), entries.data_ptr<int64_t>(),
         seg.data_ptr<int64_t>(), dalpha.data_ptr<S>(), wf.data_ptr<S>(), g_img.data_ptr<S>(), g_depth.data_ptr<S>(),
-        m, C, width, P, estimator == kPaper, g);
+        m, C, width, P, estimator == kPaper, per_camera_features, g);
     NS_LAUNCH_CHECK();
   });
   return out;
