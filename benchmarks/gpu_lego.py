@@ -11,7 +11,8 @@ cameras' intrinsics scaled to it) and per number of views rendered in one op cal
   resolution) + its backward (no optimiser step). The features are each view's colour of the SH coefficients
   (:func:`nsplat.sh.view_colour`, as the fitter does), ``[N,3]`` for one view and per-camera ``[B,N,3]`` for
   several (one op call, camera ``b`` seeing its own colours); for several views the same step is also timed as ``B``
-  one-view calls (the path before per-camera features), beside it.
+  one-view calls (the path before per-camera features), beside it. On CUDA one more step runs under
+  ``torch.cuda.set_sync_debug_mode("warn")``: its device-to-host synchronisations, by source line, go to the JSON.
 
 Each figure is the median over ``--repeats`` runs after two warm-up runs, each timed with
 ``torch.cuda.synchronize()`` before and after on CUDA (plain wall time on the CPU). The table puts the GPU
@@ -33,6 +34,8 @@ import itertools
 import statistics
 import sys
 import time
+import warnings
+from collections import Counter
 from collections.abc import Callable
 
 import torch
@@ -66,6 +69,23 @@ def timer(device: torch.device, fn: Callable[[], object], repeats: int) -> list[
         if it >= WARMUP:
             out.append(1000 * (time.perf_counter() - t0))
     return out
+
+
+def host_syncs(device: torch.device, fn: Callable[[], object]) -> dict[str, int] | None:
+    """The device-to-host synchronisations of one run of ``fn()`` on CUDA (``torch.cuda.set_sync_debug_mode``), by
+    the Python line that caused them (``None`` on the CPU). Native code's syncs (the sampler reads sizes back) are
+    reported at the line that called the op."""
+    if device.type != "cuda":
+        return None
+    torch.cuda.synchronize(device)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return dict(Counter(f"{w.filename}:{w.lineno}" for w in caught if "synchroniz" in str(w.message)))
 
 
 def parse_ints(text: str, what: str) -> list[int]:
@@ -158,10 +178,12 @@ def main() -> None:
 
             sampler_ms, step_ms = timer(device, sampler, args.repeats), timer(device, step, args.repeats)
             loop_ms = timer(device, step_loop, args.repeats) if B > 1 else None
+            syncs = host_syncs(device, step)
             rec = {"resolution": res, "views": B, "features": "SH view colour" if B == 1 else "SH view colour per camera",
                    "sampler_ms": statistics.median(sampler_ms), "step_ms": statistics.median(step_ms),
                    "sampler_runs_ms": sampler_ms, "step_runs_ms": step_ms, "target_step_ms": TARGETS.get((res, B)),
-                   "loop_step_ms": statistics.median(loop_ms) if loop_ms else None, "loop_step_runs_ms": loop_ms}
+                   "loop_step_ms": statistics.median(loop_ms) if loop_ms else None, "loop_step_runs_ms": loop_ms,
+                   "step_host_syncs": syncs}
             records.append(rec)
             write_result(result, {**meta, "rows": records})  # each row as it comes (a time limit keeps the rest)
             print(f"{res}² × {B} views: sampler {rec['sampler_ms']:.1f} ms, step {rec['step_ms']:.1f} ms",
