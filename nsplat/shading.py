@@ -11,8 +11,8 @@ where ``ω_l`` is the camera-space unit direction towards light ``l`` (OpenCV ca
 z forward, so the headlight direction is ``(0, 0, -1)``, "above" is ``(0, -1, 0)``, "below" ``(0, 1, 0)``).
 
 Because the lights move with the camera, the shaded colour depends on the camera: :func:`lambert`
-returns one feature tensor per camera ``[B, N, C]`` and callers render camera by camera (see
-:func:`nsplat.render.render_views`).
+returns one feature tensor per camera ``[B, N, C]``, which the op takes as per-camera features (one call for
+all cameras, :func:`nsplat.render.render_views`).
 """
 from __future__ import annotations
 
