@@ -96,7 +96,7 @@ def test_composite_validates_features_cameras_and_probs():
     sc, V, K = _setup()
     proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, **KW)
     idx, probs, _, _ = sample(proj, K, 5, 4, samples=3)
-    with pytest.raises(ValueError, match=r"^features: expected shape \[N, C\] with N=6"):
+    with pytest.raises(ValueError, match=r"^features: expected shape \[N, C\] or \[B, N, C\] with N=6, B=2"):
         composite_sample(proj, sc["features"][:4], K, idx, probs)  # too short: would be read out of bounds
     with pytest.raises(ValueError, match=r"^indices: expected shape \[B,H,W,m\] with B=2"):
         composite_sample(proj, sc["features"], K, idx[:1], probs[:1])
