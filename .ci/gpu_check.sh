@@ -8,7 +8,8 @@
 #   5. (GPU_CHECK_STAGES: "train") the README's main job on the GPU (`python train.py --device cuda`);
 #   6. (GPU_CHECK_STAGES: "ncu") Nsight Compute sections of one sample_kernel launch (N=1M, 512², m=16);
 #   7. (GPU_CHECK_STAGES: "lego") the lego stage-1 step table (python -m benchmarks.gpu_lego: sampler and step at
-#      200², 400², 800², one and eight views per op call, at most 150 s), then configs/lego.yaml on the GPU for at
+#      200², 400², 800², 1, 8 and 12 views per op call (lego.yaml's step: 12), at most 150 s; one step's host syncs),
+#      then configs/lego.yaml on the GPU for at
 #      most 300 s with its val PSNR over time (python -m benchmarks.val_curve). Needs the lego data under
 #      $NSPLAT_DATA/nerf_synthetic/lego_400 (docs/performance.md says how it travels); run it alone:
 #      GPU_CHECK_STAGES=lego GPU_CHECK_BUDGET_S=570 bash .ci/gpu_check.sh   (one 10-minute call with the build).
@@ -130,7 +131,7 @@ if has lego; then
     # one view a step, about ten points in 300 s at today's 23 steps/s; scale it down if a step takes more views)
     VAL=${GPU_CHECK_LEGO_VALIDATE:-720}
     t=$SECONDS
-    NSPLAT_BENCH_OUT=$OUT timeout "$(cap 150 $(($(left) - 330)))" python3 -m benchmarks.gpu_lego --device cuda
+    NSPLAT_BENCH_OUT=$OUT timeout "$(cap 150 $(($(left) - 330)))" python3 -m benchmarks.gpu_lego --device cuda --views 1,8,12
     echo "gpu_lego rc=$? ($((SECONDS - t)) s)"
     t=$SECONDS
     TRAIN_S=$(cap 300 $(($(left) - 25)))
