@@ -151,11 +151,15 @@ def frame_of(root: Path) -> tuple[dict, torch.Tensor]:
     return out, frame.viewmats(every.viewmats)[order]
 
 
+#: The commit (and whether the tree had changes) when this process started: the code it runs.
+STARTED = {k: v for k, v in machine().items() if k in ("commit", "dirty")}
+
+
 def stamp() -> dict:
-    """When and at what a row was measured: :func:`machine`'s commit, dirtiness, date and load average, and the
-    command line."""
+    """When and at what a row was measured: the commit the process started at (:data:`STARTED`), the date
+    and load average now, and the command line."""
     m = machine()
-    return {"commit": m["commit"], "dirty": m["dirty"], "date": m["date"], "load_avg": m["load_avg"],
+    return {**STARTED, "date": m["date"], "load_avg": m["load_avg"],
             "command": "python -m benchmarks.lego_capture " + " ".join(sys.argv[1:])}
 
 
