@@ -11,7 +11,7 @@ name held out as test, every 8th of the rest as val). ``--similarity`` also trai
 random similarity transform of its world (rotation, translation by 5 scene units, scale 0.2–5): the training
 frame must not depend on the world frame SfM picked.
 
-    python -m benchmarks.lego_capture --seeds 0 1 2 --similarity     # SfM ~10 min per seed and training ~15 min per run on 2 cores
+    python -m benchmarks.lego_capture --seeds 0 1 2 --similarity     # SfM, then one training per SfM output
     python -m benchmarks.lego_capture --seeds 3 --sfm-only           # one more SfM run, no training
     python -m benchmarks.lego_capture --seeds 0 1 2 --similarity --report   # tabulate the finished runs only
     python -m benchmarks.lego_capture --seeds 1 --train-seed 1       # train seed 1's SfM output again, seed=1
