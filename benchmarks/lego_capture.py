@@ -11,12 +11,15 @@ name held out as test, every 8th of the rest as val). ``--similarity`` also trai
 random similarity transform of its world (rotation, translation by 5 scene units, scale 0.2–5): the training
 frame must not depend on the world frame SfM picked.
 
-    python -m benchmarks.lego_capture --seeds 0 1 2 --similarity     # SfM ~10 min per seed and training ~15 min per run on 2 cores
+    python -m benchmarks.lego_capture --seeds 0 1 2 --similarity     # SfM, then one training per SfM output
     python -m benchmarks.lego_capture --seeds 3 --sfm-only           # one more SfM run, no training
     python -m benchmarks.lego_capture --seeds 0 1 2 --similarity --report   # tabulate the finished runs only
+    python -m benchmarks.lego_capture --seeds 1 --train-seed 1       # train seed 1's SfM output again, seed=1
 
-Writes ``benchmarks/results/lego_capture.json`` (per run: SfM registered images, points and time, the training
-frame's diagnosis, stage-1 and final test PSNR, wall and CPU seconds) and prints a Markdown table.
+Merges its rows into ``benchmarks/results/lego_capture.json`` (per run: SfM registered images, points and time,
+the training frame's diagnosis, stage-1 and final test PSNR, wall and CPU seconds, and ``measured``: the commit,
+date, load average and command the row was measured with); rows of runs not made by this call are kept as
+they were, a row of the same name is replaced. Prints a Markdown table of every row.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ import pycolmap
 import torch
 from scipy.spatial.transform import Rotation
 
-from benchmarks.common import REPO, markdown, run_config, write_result
+from benchmarks.common import REPO, machine, markdown, read_result, run_config, write_result
 from nsplat.data.colmap import load_colmap
 from nsplat.data.views import PosedViews
 from nsplat.tasks.neural.frame import capture_frame
@@ -120,13 +123,14 @@ def similar(root: Path, seed: int) -> Path:
     return out
 
 
-def train(root: Path, run: Path) -> dict:
-    """``configs/colmap.yaml`` at 100² on ``root``; returns ``run_config``'s record and the exit status."""
+def train(root: Path, run: Path, seed: int = 0) -> dict:
+    """``configs/colmap.yaml`` at 100² on ``root`` with training ``seed``; returns ``run_config``'s record and the
+    exit status."""
     if (run / "eval_test" / "metrics.json").is_file():
         return {"skipped": True, "returncode": 0}
     try:
         return run_config(REPO / "configs" / "colmap.yaml", run,
-                          [f"data.root={root}", "data.capture.downscale=4", "log.progress=false"])
+                          [f"data.root={root}", "data.capture.downscale=4", "log.progress=false", f"seed={seed}"])
     except RuntimeError as err:  # a run that stops with its message is a result too
         return {"returncode": 1, "error": str(err)}
 
@@ -147,10 +151,24 @@ def frame_of(root: Path) -> tuple[dict, torch.Tensor]:
     return out, frame.viewmats(every.viewmats)[order]
 
 
+#: The commit (and whether the tree had changes) when this process started: the code it runs.
+STARTED = {k: v for k, v in machine().items() if k in ("commit", "dirty")}
+
+
+def stamp() -> dict:
+    """When and at what a row was measured: the commit the process started at (:data:`STARTED`), the date
+    and load average now, and the command line."""
+    m = machine()
+    return {**STARTED, "date": m["date"], "load_avg": m["load_avg"],
+            "command": "python -m benchmarks.lego_capture " + " ".join(sys.argv[1:])}
+
+
 def result(root: Path, run: Path, ran: dict) -> dict:
-    """One row: SfM record, the frame diagnosis, stage-1 and final test PSNR (absent when the run stopped)."""
+    """One row: SfM record, the frame diagnosis, stage-1 and final test PSNR (absent when the run stopped), the
+    load before and after training and the :func:`stamp` it was measured at."""
     row = {"root": str(root), "run": str(run), "sfm": json.loads((root / "sfm.json").read_text()),
-           "returncode": ran.get("returncode"), "wall_s": ran.get("wall_s"), "cpu_s": ran.get("cpu_s")}
+           "returncode": ran.get("returncode"), "wall_s": ran.get("wall_s"), "cpu_s": ran.get("cpu_s"),
+           "load_before": ran.get("load_before"), "load_after": ran.get("load_after"), "measured": stamp()}
     for name, key in (("frame", "capture_frame.json"), ("test", "eval_test/metrics.json"),
                       ("stage1", "eval_geometry.json"), ("stage1_history", "geometry_history.json")):
         if (run / key).is_file():
@@ -168,6 +186,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--similarity", action="store_true", help="also train the first SfM run moved by a similarity")
+    ap.add_argument("--train-seed", type=int, default=0,
+                    help="training seed (`seed=`); runs with a seed other than 0 are named <SfM run>-train<seed>")
     ap.add_argument("--sfm-only", action="store_true")
     ap.add_argument("--report", action="store_true", help="train nothing: tabulate the finished runs")
     args = ap.parse_args()
@@ -181,29 +201,35 @@ def main() -> None:
         return
     rows = {}
     for root in roots:
-        run = args.runs / root.name
+        name = root.name + (f"-train{args.train_seed}" if args.train_seed else "")
+        run = args.runs / name
         if args.report:
             if (run / "capture_frame.json").is_file():
                 done = (run / "finished.json").is_file()  # wall time from the run folder's first and last file
                 wall = (run / "finished.json").stat().st_mtime - (run / "config.yaml").stat().st_mtime if done else None
-                rows[root.name] = result(root, run, {"returncode": 0 if done else None, "wall_s": wall})
+                rows[name] = result(root, run, {"returncode": 0 if done else None, "wall_s": wall})
             continue
-        rows[root.name] = result(root, run, train(root, run))
+        rows[name] = result(root, run, train(root, run, args.train_seed))
     frames, cams = {}, {}
     for root in sorted(scene.glob("sfm-*")):
         if (root / "sfm.json").is_file():
             frames[root.name], cams[root.name] = frame_of(root)
+            frames[root.name]["measured"] = stamp()
     for name in frames:  # a moved SfM world: its training-frame cameras against the original's
         if "-sim" in name and cams[name].shape == cams[name.split("-sim")[0]].shape:
             frames[name]["cameras_max_diff_vs_unmoved"] = float((cams[name] - cams[name.split("-sim")[0]]).abs().max())
-    table = markdown(["SfM run", "registered / photos", "SfM points", "exit", "stage 1 test PSNR", "test PSNR", "train wall s"],
+    before = read_result("lego_capture") or {}
+    rows, frames = {**before.get("runs", {}), **rows}, {**before.get("frames", {}), **frames}
+    table = markdown(["run", "registered / photos", "SfM points", "exit", "stage 1 val / test PSNR", "test PSNR",
+                      "train wall / CPU s", "measured at"],
                      [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
                        max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
-                       f"{r['stage1']['test']['psnr']['mean']:.2f}" if "stage1" in r else "-",
-                       f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
-                       f"{r['wall_s']:.0f}" if r.get("wall_s") else "-"] for k, r in rows.items()])
-    write_result("lego_capture", {"command": "python -m benchmarks.lego_capture " + " ".join(sys.argv[1:]),
-                                  "photos": count, "features": feats, "runs": rows, "frames": frames,
+                       f"{r['stage1']['val']['psnr']['mean']:.2f} / {r['stage1']['test']['psnr']['mean']:.2f}"
+                       if "stage1" in r else "-", f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
+                       f"{r['wall_s']:.0f} / {r['cpu_s']:.0f}" if r.get("cpu_s") else
+                       f"{r['wall_s']:.0f} / -" if r.get("wall_s") else "-",
+                       f"{r['measured']['commit'][:7]} {r['measured']['date'][:16]}"] for k, r in rows.items()])
+    write_result("lego_capture", {"photos": count, "features": feats, "runs": rows, "frames": frames,
                                   "markdown": table}, table)
 
 

@@ -154,6 +154,9 @@ def test_depth_range_brackets_the_points_and_the_background():
     near, far = depth_range(pts, views, torch.zeros(3), far_radius=20.0)
     assert near == pytest.approx(0.5, rel=1e-5)            # half the smallest depth
     assert far >= 2 * (3.0 + 20.0) - 1e-6
+    pts[1] = torch.tensor([3.0 - 1e-4, 0.0, 0.0])          # a stray point on that camera's centre, 1e-4 in front
+    assert depth_range(pts, views, torch.zeros(3), far_radius=20.0)[0] == pytest.approx(0.5e-4, rel=1e-2)
+    assert depth_range(pts, views, torch.zeros(3), far_radius=20.0, min_depth=0.03)[0] == pytest.approx(0.5, rel=1e-5)
 
 
 def test_fit_sphere_recovers_a_noisy_partial_sphere():

@@ -130,6 +130,30 @@ def test_training_frame_is_a_similarity_of_the_capture(capture):
     assert 0 < near < 0.5 * radius and far > 2 * radius
 
 
+def test_a_two_view_point_at_a_camera_does_not_set_the_near_plane(capture, tmp_path):
+    # pycolmap's mapper can keep a two-view point triangulated on a camera centre (a lego SfM run did, at
+    # 1.7e-7 camera distances in front of it): as the near plane it let the background surfels beside that
+    # camera overflow the projection. Depths under STRAY_DEPTH camera distances are passed over.
+    (tmp_path / "images").symlink_to(capture / "images", target_is_directory=True)
+    rec = pycolmap.Reconstruction(str(capture / "sparse" / "0"))
+    ids = sorted(i for i in rec.images if rec.images[i].name in ("im_001.png", "im_002.png"))   # training views
+    im = rec.images[ids[0]]
+    track = pycolmap.Track()
+    for i in ids:
+        track.add_element(i, next(k for k, p in enumerate(rec.images[i].points2D) if not p.has_point3D()))
+    pid = rec.add_point3D(im.projection_center() + 1e-6 * im.viewing_direction(), track)
+    rec.points3D[pid].error = 0.1
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(str(tmp_path / "sparse" / "0"))
+    planted = with_capture_render(load_config(Config, {**_config(capture), "data": {
+        **_config(capture)["data"], "root": str(tmp_path)}}))
+    prep = prepare(planted)
+    _, depth, inside = project(prep.points.xyz, prep.splits["train"])
+    assert depth[inside].min().item() < 1e-5                # the planted point is in view, at the camera
+    near = with_capture_render(load_config(Config, _config(capture))).render.near
+    assert planted.render.near == pytest.approx(near, rel=1e-6)
+
+
 def test_colmap_config_trains_and_evaluates_the_every_eighth_views(capture, tmp_path):
     cfg_path = tmp_path / "colmap.yaml"
     cfg_path.write_text(yaml.safe_dump(_config(capture)))

@@ -91,16 +91,19 @@ def sphere_background(views: PosedViews, centre: torch.Tensor, radius: float, co
 
 
 def depth_range(points: torch.Tensor, views: PosedViews, centre: torch.Tensor, far_radius: float,
-                margin: float = 0.5) -> tuple[float, float]:
+                margin: float = 0.5, min_depth: float = 0.0) -> tuple[float, float]:
     """``(near, far)`` clipping planes from the SfM ``points [P,3]``: ``near`` is ``margin`` times the
     smallest depth of a point inside any of ``views`` (not a percentile: a small object in front of a
-    well-textured background may own well under 1 % of the points); ``far`` is twice the farthest
-    camera-to-point distance that a background sphere of radius ``far_radius`` about the scene ``centre [3]``
-    can reach."""
+    well-textured background may own well under 1 % of the points), depths under ``min_depth`` passed over
+    (a stray two-view point triangulated on a camera centre, 1e-7 camera distances in front of it, would put
+    the near plane there, where the background surfels beside that camera overflow the projection); ``far``
+    is twice the farthest camera-to-point distance that a background sphere of radius ``far_radius`` about
+    the scene ``centre [3]`` can reach."""
     _, depth, inside = project(points, views)
-    d = depth[inside]
+    d = depth[inside & (depth >= min_depth)]
     if d.numel() == 0:
-        raise ValueError("SfM points: none projects into any view; cannot set near/far")
+        raise ValueError(f"SfM points: none projects into any view at a depth of at least {min_depth:.3g}; "
+                         f"cannot set near/far")
     near = margin * float(d.min())
     reach = float((camera_centres(views.viewmats.double()) - centre.double()).norm(dim=1).max()) + far_radius
     return near, 2.0 * max(reach, float(d.max()))

@@ -14,7 +14,8 @@ folder (:func:`nsplat.data.transforms_json.load_transforms`) at ``data.root`` is
   camera distance to it becomes ``radius`` and z the cameras' mean up direction (images are unchanged; the
   SfM points move with it). The frame is the same whatever similarity SfM's world is off by;
 * **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
-  (:func:`nsplat.tasks.neural.background.depth_range`: half the smallest depth, twice the farthest reach).
+  (:func:`nsplat.tasks.neural.background.depth_range`: half the smallest depth, twice the farthest reach;
+  depths under :data:`STRAY_DEPTH` camera distances are stray points, passed over).
 """
 from __future__ import annotations
 
@@ -131,6 +132,11 @@ def capture_views(cfg: Config, split: str, device: torch.device) -> PosedViews:
     return prepare(cfg).splits[split].to(device)
 
 
+#: SfM points nearer than this many camera distances to a camera that sees them do not set the near plane:
+#: one two-view point of a lego SfM run sat 5e-8 camera distances in front of a camera.
+STRAY_DEPTH = 0.01
+
+
 def with_capture_render(cfg: Config) -> Config:
     """``cfg`` with ``render.near/far`` set when ``data.capture.near_far`` applies to a capture:
     from the SfM points' depths (:func:`nsplat.tasks.neural.background.depth_range`) when the model has points, else,
@@ -148,7 +154,8 @@ def with_capture_render(cfg: Config) -> Config:
         if bg.model == "sphere":
             centre, sphere = background_sphere(cfg)
             far_radius = max(sphere + float((centre - scene).norm()), radius)
-        near, far = depth_range(prep.points.xyz, prep.splits["train"], scene, far_radius)
+        near, far = depth_range(prep.points.xyz, prep.splits["train"], scene, far_radius,
+                                min_depth=STRAY_DEPTH * radius)
     elif bg.model == "sphere":
         centre, sphere = background_sphere(cfg)
         dist = (centres - centre).norm(dim=1)
