@@ -24,6 +24,7 @@ import shutil
 import sys
 from pathlib import Path
 
+import yaml
 from plyfile import PlyData
 
 from benchmarks.common import REPO, markdown, run_config, write_result
@@ -49,8 +50,9 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "shipped": ("default", []),
     "grow-4k": ("default", _grow(2, 2, 10, 0.0, 0.01, 0.3, 4000)),
     "grow-4k-prune": ("default", _grow(2, 2, 10, 0.0, 0.01, 0.3, 4000, prune_weight=0.5)),
-    "g64-grow-4k": ("default", ["geometry.grid=64", *_grow(2, 2, 10, 0.0, 0.01, 0.5, 4000)]),
-    "grow-8k": ("default", _grow(2, 2, 10, 0.0, 0.01, 0.5, 8000)),
+    "grow-4k-s300": ("default", [*_grow(2, 2, 10, 0.0, 0.01, 0.3, 4000), "neural.steps=300"]),
+    "shipped-seed1": ("default", ["seed=1"]),
+    "grow-4k-s300-seed1": ("default", ["seed=1", *_grow(2, 2, 10, 0.0, 0.01, 0.3, 4000), "neural.steps=300"]),
     "e24": ("lego", ["geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4"]),
     "g96-e24": ("lego", ["geometry.grid=96", "geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4",
                          *_grow(2, 2, 12, 0.0, 0.0, 0.3, 80000, prune_weight=0.5)]),
@@ -95,7 +97,7 @@ def summary(variant: str) -> dict | None:
     points, row_bytes = len(ply.data), ply.data.dtype.itemsize
     metrics, geo_eval = _read(run / "eval_test" / "metrics.json"), _read(run / "eval_geometry.json") or {}
     ran = _read(run / "growth.json") or {}
-    cfg = _read(run / "config.json") or {}
+    cfg = yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").is_file() else {}
     return {"variant": variant, "overrides": VARIANTS[variant][1],
             "epochs": cfg.get("geometry", {}).get("optim", {}).get("epochs"),
             "stage1_val_psnr": geometry[-1]["val_psnr"] if geometry else None,
