@@ -48,7 +48,7 @@ def _grow(start: int, every: int, stop: int, threshold: float, split: float, gro
 #: halves at 1/3 and 2/3, the tail anneals the last 1/6), ``gG-eN`` starts on the G³ hull and grows during the
 #: first half of the epochs up to the 160³ hull's point count (80 000), splitting the 30 % with the largest
 #: screen-space gradient per event; ``g128-clone-e24`` clones the 20 % with the largest gradient instead (same size,
-#: offset by half a std-dev), in the first third of the epochs.
+#: offset by half a std-dev), in the first third of the epochs (defined, not measured yet).
 VARIANTS: dict[str, tuple[str, list[str]]] = {
     "shipped": ("default", []),
     "grow-4k": ("default", _grow(2, 2, 10, 0.0, 0.01, 0.3, 4000)),
