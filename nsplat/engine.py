@@ -34,7 +34,7 @@ from nsplat.viewer import live
 log = logging.getLogger(__name__)
 
 #: Named op-seed streams: renders of the same step in different streams never share a seed.
-STREAMS = ("train", "fit", "eval", "filter", "reposition", "batches")
+STREAMS = ("train", "fit", "eval", "filter", "reposition", "batches", "densify")
 _STREAM_BITS, _STEP_BITS = 8, 32
 
 

@@ -13,6 +13,7 @@ from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, fit
 from nsplat.render import RenderConfig
 from nsplat.scene import SceneConfig, SurfelScene
+from nsplat.tasks.reconstruct import fibonacci_sphere
 from tests.test_reconstruct import OFF, _lr, _tiny_problem, _views
 
 
@@ -114,7 +115,8 @@ class _Interrupt(Exception):
 
 
 def test_fit_with_densification_resumes_exactly(tmp_path):
-    dens = DensifyConfig(enabled=True, start=1, every=1, grad_threshold=0.0, split_size=0.05, max_growth=0.25)
+    dens = DensifyConfig(enabled=True, start=1, every=1, grad_threshold=0.0, split_size=0.05, max_growth=0.25,
+                         prune_weight=0.01)
     cfg = FitConfig(epochs=3, batch=4, learn=_lr(0.03), reposition=OFF, densify=dens)
     rcfg = RenderConfig(renderer="splat")
     lg = LogConfig(checkpoint=2, validate=1, progress=False)  # 2 steps per epoch: a checkpoint per epoch
@@ -171,3 +173,88 @@ def test_fit_renders_a_batch_in_one_call_with_the_per_view_gradients(tmp_path, m
     assert cams_together == [3, 3] and cams_apart == [1] * 6
     for a, b in zip(together[0], apart[0]):  # the first step: the same parameters (later ones differ by rounding)
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
+
+
+def test_densify_prunes_points_below_the_contribution_threshold_with_their_optimizer_rows():
+    """``prune_weight = w``: the points whose summed compositing weight is below ``w`` go (with their Adam rows,
+    SH coefficients included); an event without the contributions it needs is an error naming the option."""
+    n = 6
+    g = torch.Generator().manual_seed(0)
+    cfg_scene = SceneConfig(channels=12, learn=["means", "normals", "scales", "opacities", "features"], opacity=None,
+                            feature_activation="identity")
+    scene = SurfelScene.from_points(cfg_scene, torch.randn(n, 3, generator=g),
+                                    torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1),
+                                    scales=torch.full((n, 2), 0.01), opacities=torch.full((n,), 0.5),
+                                    features=torch.rand(n, 12, generator=g))
+    opt = _stepped_adam(scene)
+    feats = scene.tensor("features").detach().clone()
+    moments = opt.state[scene.tensor("features")]["exp_avg"].clone()
+    stats = DensityStats(n)
+    cfg = DensifyConfig(enabled=True, grad_threshold=1.0, prune_opacity=0.0, prune_weight=0.5)
+    contrib = torch.tensor([3.0, 0.0, 0.49, 0.5, 7.0, 0.1])
+    with pytest.raises(ValueError, match="prune_weight"):
+        densify(scene, stats, cfg, torch.Generator().manual_seed(0), [opt])
+    counts = densify(scene, stats, cfg, torch.Generator().manual_seed(0), [opt], contrib)
+    keep = torch.tensor([0, 3, 4])
+    assert counts == {"split": 0.0, "cloned": 0.0, "pruned": 3.0, "points": 3.0}
+    assert torch.equal(scene.tensor("features").detach(), feats[keep])
+    st = opt.state[scene.tensor("features")]
+    assert st["exp_avg"].shape == (3, 12) and torch.equal(st["exp_avg"], moments[keep])
+    with pytest.raises(ValueError, match="prune_weight"):
+        DensifyConfig(prune_weight=-1.0)
+
+
+def _unseen_point(vm: torch.Tensor, Ks: torch.Tensor, res: int) -> torch.Tensor:
+    """``[3]``: a point 4 units from the origin that no camera ``vm [V,4,4]``, ``Ks [V,3,3]`` has in front of it
+    and inside its ``res``² image (with a margin of a quarter image)."""
+    dirs, _ = fibonacci_sphere(200, torch.zeros(3), 1.0)
+    for p in 4.0 * dirs:
+        cam = vm[:, :3, :3] @ p + vm[:, :3, 3]
+        px = (Ks @ cam[..., None])[..., 0]
+        uv = px[:, :2] / px[:, 2:].clamp_min(1e-6)
+        seen = (cam[:, 2] > 0) & (uv > -res / 4).all(-1) & (uv < 1.25 * res).all(-1)
+        if not bool(seen.any()):
+            return p
+    raise AssertionError("every candidate point is seen")
+
+
+def _stage1_like(n: int = 120, views: int = 6, res: int = 16):
+    """The tiny problem as stage 1 sees it: view-dependent colour (SH degree 1, 12 channels), learned opacities
+    and std-devs, plus two surfels that no training view sees (the last two rows)."""
+    _, images, vm, Ks, _ = _tiny_problem(n=n, views=views, res=res)
+    s0, n0 = fibonacci_sphere(n, torch.zeros(3), 1.05)
+    far = _unseen_point(vm, Ks, res)
+    means = torch.cat([s0, far[None], 1.1 * far[None]])
+    normals = torch.cat([n0, torch.nn.functional.normalize(far, dim=0).expand(2, 3)])
+    feats = torch.cat([torch.full((n + 2, 3), 0.5), torch.zeros(n + 2, 9)], 1)
+    cfg = SceneConfig(channels=12, learn=["means", "normals", "scales", "opacities", "features"], opacity=None,
+                      feature_activation="identity")
+    scene = SurfelScene.from_points(cfg, means, normals, scales=torch.full((n + 2, 2), 0.04),
+                                    opacities=torch.full((n + 2,), 0.9), features=feats)
+    return scene, _views(images, vm, Ks), far
+
+
+def test_fit_grows_during_an_annealed_sh_schedule_within_the_budget_and_drops_unseen_points(tmp_path):
+    """Density control during a stage-1-like fit (SH colour at a smaller rate for the higher bands, a scale cap,
+    an annealing tail, one view per step): the two surfels no training view sees are pruned at the first event,
+    the count grows but never past ``max_points``, every new row stays finite, and two runs are identical."""
+    dens = DensifyConfig(enabled=True, start=1, every=1, stop=2, grad_threshold=0.0, split_size=0.05,
+                         max_growth=0.5, max_points=150, prune_opacity=0.0, prune_weight=0.01)
+    cfg = FitConfig(epochs=3, batch=1, learn={**_lr(0.01), "opacities": 0.05}, reposition=OFF, densify=dens,
+                    shading="sh", sh_rest_lr=0.05, max_scale=0.2, anneal_epochs=1, anneal_factor=0.25)
+    rcfg = RenderConfig(renderer="splat")
+    runs = []
+    for name in ("a", "b"):
+        scene, views, far = _stage1_like()
+        out = fit(scene, views, cfg, rcfg, tmp_path / name, log=LogConfig(every=1, checkpoint=0, progress=False),
+                  seed=5, background=torch.ones(3))
+        runs.append(scene)
+    scene = runs[0]
+    assert 122 < scene.num_points <= 150, scene.num_points
+    assert float((scene.means.detach() - far).norm(dim=-1).min()) > 1.0  # both unseen surfels are gone (no copies either)
+    assert scene.features.shape == (scene.num_points, 12)
+    assert all(bool(torch.isfinite(t).all()) for t in scene.state_dict().values())
+    assert float(scene.scales.detach().max()) <= 0.2 * (1 + 1e-6)
+    assert math.isfinite(out["train/loss"])
+    for name, t in runs[0].state_dict().items():
+        assert torch.equal(t, runs[1].state_dict()[name]), name

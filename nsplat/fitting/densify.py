@@ -10,12 +10,18 @@ screen-space magnitude ``‖∂L/∂μ₂d‖`` (pixels: the camera-plane part o
   **split** into ``children`` surfels drawn from their own kernel, each ``shrink`` times smaller;
   smaller ones are **cloned** (the copy is offset by ``clone_jitter`` of its std-dev in the tangent
   plane, so the two separate under the next gradients);
-* **prune** surfels whose opacity fell below ``prune_opacity`` or whose std-dev exceeds ``prune_scale``.
+* **prune** surfels whose opacity fell below ``prune_opacity``, whose std-dev exceeds ``prune_scale``, or
+  (``prune_weight``) whose compositing weight summed over every training view stays below ``prune_weight``
+  pixels: surfels that contribute nothing from any training view. That sum is measured at the event by one
+  more render of every view (:func:`nsplat.fitting.reposition.point_contributions`, ``measure="weight"``).
 
 The point set is rebuilt with :meth:`nsplat.scene.SurfelScene.gather_` (optimiser state gathered; new
 rows start without momentum, as in 3DGS). Growth per event is capped by ``max_growth`` and the total by
-``max_points``, highest gradients first. Under torchrun the statistics are summed over ranks, so every rank
-takes the same decisions.
+``max_points``, highest gradients first. Under torchrun the statistics (and the contributions) are summed over
+ranks, so every rank takes the same decisions.
+
+During a fit the point set changes only between steps: the learning-rate schedule, the SH bands' smaller
+rate and the scale cap apply to the new rows as to the old ones from the next step on.
 """
 from __future__ import annotations
 
@@ -28,6 +34,8 @@ from torch import nn
 from nsplat import distributed
 from nsplat.config import ConfigError, require_fields
 from nsplat.data.views import PosedViews
+from nsplat.engine import op_seed
+from nsplat.fitting.reposition import point_contributions
 from nsplat.fitting.strategy import FitState, Strategy, ViewRender
 from nsplat.ops import tangent_frame
 from nsplat.scene import SurfelScene
@@ -51,6 +59,8 @@ class DensifyConfig:
         max_points: never exceed this many points.
         prune_opacity: prune below this opacity (only with per-point opacities; ``0``: never).
         prune_scale: prune points whose largest std-dev exceeds this (world units; ``0``: never).
+        prune_weight: prune points whose compositing weight summed over all training views (pixels) is
+            below this at an event (``0``: never; costs one render of every view per event).
     """
 
     enabled: bool = False
@@ -66,11 +76,12 @@ class DensifyConfig:
     max_points: int = 50000
     prune_opacity: float = 0.02
     prune_scale: float = 0.0
+    prune_weight: float = 0.0
 
     def __post_init__(self) -> None:
         require_fields(self, start=">=1", every=">=1", stop=">=0", grad_threshold=">=0", split_size=">=0",
                        children=">=1", shrink=">0", clone_jitter=">=0", max_growth=">=0", max_points=">=1",
-                       prune_opacity=">=0", prune_scale=">=0")
+                       prune_opacity=">=0", prune_scale=">=0", prune_weight=">=0")
 
     def due(self, epochs_done: int) -> bool:
         """Whether an event runs after ``epochs_done`` epochs."""
@@ -122,9 +133,11 @@ class DensityStats(nn.Module):
 
 @torch.no_grad()
 def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generator: torch.Generator,
-            optimizers: Iterable[torch.optim.Optimizer] = ()) -> dict[str, float]:
-    """One density-control event (module docstring); resets ``stats``. Returns counts
-    ``{split, cloned, pruned, points}``."""
+            optimizers: Iterable[torch.optim.Optimizer] = (), contributions: torch.Tensor | None = None
+            ) -> dict[str, float]:
+    """One density-control event (module docstring); resets ``stats``. ``contributions [N]``: each point's
+    compositing weight summed over the training views (:func:`point_contributions`), needed when
+    ``cfg.prune_weight > 0``. Returns counts ``{split, cloned, pruned, points}``."""
     N = scene.num_points
     device = scene.means.device
     grad = stats.average()
@@ -135,6 +148,11 @@ def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generat
         prune |= scene.opacities < cfg.prune_opacity
     if cfg.prune_scale > 0:
         prune |= size > cfg.prune_scale
+    if cfg.prune_weight > 0:
+        if contributions is None or contributions.shape != (N,):
+            raise ValueError(f"densify: prune_weight needs the contributions [{N}], got "
+                             f"{None if contributions is None else list(contributions.shape)}")
+        prune |= contributions < cfg.prune_weight
     # Candidates by decreasing gradient; a split adds children - 1 rows, a clone 1. Keep the longest
     # prefix within the event's budget of new rows (max_growth) and the total cap (max_points).
     cand = ((grad > cfg.grad_threshold) & ~prune).nonzero().squeeze(1)
@@ -176,7 +194,8 @@ def densify(scene: SurfelScene, stats: DensityStats, cfg: DensifyConfig, generat
 
 class Densify(Strategy):
     """Density control as a fitter strategy: per-view statistics after each backward, summed over the step's
-    views (and ranks) after Adam's step, and an event after every due epoch (logs ``densify/<count>``)."""
+    views (and ranks) after Adam's step, and an event after every due epoch (logs ``densify/<count>``; with
+    ``prune_weight``, the contributions are rendered first with the op seeds of stream ``densify``)."""
 
     per_view = True  # the statistics are of each view's own screen-space gradient
 
@@ -211,5 +230,12 @@ class Densify(Strategy):
         epochs = fit.epoch_done(step)
         if epochs is None or not self.cfg.due(epochs):
             return {}
-        counts = densify(fit.scene, self.stats, self.cfg, fit.generator, [fit.optimizer])
+        contrib = None
+        if self.cfg.prune_weight > 0:
+            v = fit.views
+            contrib = point_contributions(fit.scene, v.viewmats, v.Ks, v.width, v.height, fit.render_cfg,
+                                          seed=op_seed(fit.seed, "densify", epochs - 1), chunk=fit.batch,
+                                          measure="weight", part=(distributed.rank(), distributed.world_size()))
+            contrib = distributed.all_reduce_sum(contrib)
+        counts = densify(fit.scene, self.stats, self.cfg, fit.generator, [fit.optimizer], contrib)
         return {f"densify/{k}": v for k, v in counts.items()}
