@@ -37,6 +37,7 @@ from torch.distributed import TCPStore
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import load_config
 from nsplat.distributed import shard
+from nsplat.engine import host_scalars
 from nsplat.runctx import RunContext
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
@@ -253,7 +254,7 @@ def _step_grads(cfg: Config, train, geo, chunk: int | None) -> tuple[dict[str, f
     for key, opt in t.optimizers.items():
         opt.register_step_pre_hook(lambda o, *_, key=key: grads.__setitem__(
             key, [p.grad.clone() for g in o.param_groups for p in g["params"]]))
-    scalars = train_step(cfg.neural, t, train, 0)
+    scalars = host_scalars(train_step(cfg.neural, t, train, 0))  # as the engine logs them
     return scalars, grads["d"], grads["g"]
 
 
