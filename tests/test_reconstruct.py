@@ -180,6 +180,24 @@ def test_tiny_reconstruction_with_sampled_op_reduces_chamfer(tmp_path):
     assert (tmp_path / "tb").is_dir() and (tmp_path / "checkpoints" / "latest").is_file()
 
 
+def test_repositioning_checks_every_epoch_but_the_last(tmp_path, monkeypatch):
+    # A point moved after the last epoch would keep its copied attributes without a step to refit them.
+    import nsplat.fitting.reposition as rp
+    calls: list[int] = []
+    monkeypatch.setattr(rp, "point_contributions",
+                        lambda scene, *a, **k: calls.append(scene.num_points) or torch.ones(scene.num_points))
+    _, images, vm, Ks, scene = _tiny_problem(n=60, views=4, res=12)
+    cfg = FitConfig(epochs=5, batch=2, learn=_lr(0.01), reposition=RepositionConfig(every=2))
+    fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path,
+        log=LogConfig(checkpoint=100, progress=False))
+    assert len(calls) == 2  # after epochs 2 and 4
+    calls.clear()
+    cfg = FitConfig(epochs=4, batch=2, learn=_lr(0.01), reposition=RepositionConfig(every=2))
+    fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / "b",
+        log=LogConfig(checkpoint=100, progress=False))
+    assert len(calls) == 1  # after epoch 2; not after the last (4)
+
+
 class _Interrupt(Exception):
     pass
 

@@ -181,7 +181,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     t = build(scene, cfg, seed, strategies, views)
     optimizer, scheduler = t.optimizers["fit"], t.schedulers["fit"]
     state = FitState(scene, views, optimizer, t.generator, render_cfg, cfg.shading, seed,
-                     steps_per_epoch=math.ceil(len(views) / cfg.batch), batch=cfg.batch)
+                     steps_per_epoch=math.ceil(len(views) / cfg.batch), batch=cfg.batch, epochs=cfg.epochs)
     engine = Engine(Path(run_dir), log or LogConfig(), cfg.epochs * state.steps_per_epoch, desc=desc)
     start = engine.resume(t, payload)
     cap_scales(scene, cfg.max_scale)

@@ -1,6 +1,6 @@
 """Repositioning (paper §4): points that contribute nothing to any view move next to visible ones.
 
-After every ``every``-th epoch the fitter renders every training view once more with a unit probe on each
+After every ``every``-th epoch but the last, the fitter renders every training view once more with a unit probe on each
 point's colour (:func:`point_contributions`); points whose summed contribution stays below ``min_weight``
 are moved next to a random contributing point (:func:`reposition`). Under torchrun each rank renders its
 share of the views and the contributions are summed, so every rank moves the same points.
@@ -28,7 +28,8 @@ class RepositionConfig:
 
     Attributes:
         enabled: run the checks.
-        every: check after every this many epochs (paper: 1; each check renders all views once more).
+        every: check after every this many epochs (paper: 1; each check renders all views once more), except
+            after the last epoch: a point moved then would keep its copied attributes unfitted.
         contribution: what "contributes" means (:func:`point_contributions`): ``radiance`` (weight × colour,
             the paper's "visual contribution") or ``weight``.
         min_weight: a point contributes when its contribution summed over all views is at least this.
@@ -121,7 +122,7 @@ class Reposition(Strategy):
 
     def after_step(self, fit: FitState, step: int) -> dict[str, float]:
         epochs = fit.epoch_done(step)
-        if epochs is None or epochs % self.cfg.every:
+        if epochs is None or epochs % self.cfg.every or epochs == fit.epochs:
             return {}
         v = fit.views
         contrib = point_contributions(fit.scene, v.viewmats, v.Ks, v.width, v.height, fit.render_cfg,

@@ -36,7 +36,7 @@ class FitState:
         generator: the fit's CPU generator for random draws (checkpointed: exact resume).
         render_cfg: the render settings of the fit. shading: how features become colour (``lambert``,
             ``none``, ``sh``). seed: the run seed (op seeds: :func:`nsplat.engine.op_seed`).
-        steps_per_epoch: steps per pass over all views. batch: views per step.
+        steps_per_epoch: steps per pass over all views. batch: views per step. epochs: epochs of the fit.
     """
 
     scene: SurfelScene
@@ -48,6 +48,7 @@ class FitState:
     seed: int
     steps_per_epoch: int
     batch: int
+    epochs: int
 
     def epoch_done(self, step: int) -> int | None:
         """The number of epochs completed by step ``step`` (0-based) when it is an epoch's last step, else
