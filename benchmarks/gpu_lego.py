@@ -5,7 +5,9 @@ On the stage-1 start of ``configs/lego.yaml`` (the visual hull of its training s
 (``render.*``: m, ε, estimator, compositing, low-pass, culling), this times, per resolution (the training
 cameras' intrinsics scaled to it) and per number of views rendered in one op call (the first ``B`` training views):
 
-* **sampler**: :func:`nsplat.ops.project` + :func:`nsplat.ops.sample` of the ``B`` cameras (no gradients);
+* **sampler**: :func:`nsplat.ops.project` + :func:`nsplat.ops.sample` of the ``B`` cameras (no gradients); on
+  CUDA also, for the first ``--views`` count, once per threads-per-pixel setting of ``--lanes``
+  (``NSPLAT_CUDA_PIXEL_LANES``, docs/op.md "CUDA lanes"), so that a GPU session can check the automatic choice;
 * **step**: the stage-1 step through the public API, :func:`nsplat.ops.splat` forward of the ``B`` cameras in one
   call (a ``[B]`` seed tensor, one seed per camera) + the L1 loss against the training images (resized to the
   resolution) + its backward (no optimiser step). The features are each view's colour of the SH coefficients
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import statistics
 import sys
 import time
@@ -106,12 +109,18 @@ def main() -> None:
     ap.add_argument("--resolutions", default="200,400,800", help="square image sides (default %(default)s)")
     ap.add_argument("--views", default="1,8", help="cameras per op call (default %(default)s)")
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--lanes", default="1,2,4,8,16",
+                    help="CUDA only: threads per pixel to time the sampler with, beside the automatic choice "
+                         "(default %(default)s; '' for none)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke size: configs/default.yaml's procedural scene with SH colour, 64², 3 repeats")
     args = ap.parse_args()
     if args.quick:
         args.config, args.resolutions, args.repeats = str(REPO / "configs" / "default.yaml"), "64", 3
     resolutions, view_counts = parse_ints(args.resolutions, "--resolutions"), parse_ints(args.views, "--views")
+    lane_counts = parse_ints(args.lanes, "--lanes") if args.lanes and args.device == "cuda" else []
+    if any(not 1 <= k <= 16 for k in lane_counts):
+        raise SystemExit(f"--lanes: expected integers in [1, 16], got {args.lanes!r}")
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected >= 1, got {args.repeats}")
     device = torch.device(args.device)
@@ -177,17 +186,25 @@ def main() -> None:
                     ((out.image - target[b:b + 1]).abs().mean() / B).backward()
 
             sampler_ms, step_ms = timer(device, sampler, args.repeats), timer(device, step, args.repeats)
+            lanes_ms = {}
+            for k in lane_counts if B == view_counts[0] else []:  # the lanes split one camera's pixels
+                os.environ["NSPLAT_CUDA_PIXEL_LANES"] = str(k)
+                try:
+                    lanes_ms[k] = statistics.median(timer(device, sampler, args.repeats))
+                finally:
+                    del os.environ["NSPLAT_CUDA_PIXEL_LANES"]
             loop_ms = timer(device, step_loop, args.repeats) if B > 1 else None
             syncs = host_syncs(device, step)
             rec = {"resolution": res, "views": B, "features": "SH view colour" if B == 1 else "SH view colour per camera",
                    "sampler_ms": statistics.median(sampler_ms), "step_ms": statistics.median(step_ms),
                    "sampler_runs_ms": sampler_ms, "step_runs_ms": step_ms, "target_step_ms": TARGETS.get((res, B)),
                    "loop_step_ms": statistics.median(loop_ms) if loop_ms else None, "loop_step_runs_ms": loop_ms,
-                   "step_host_syncs": syncs}
+                   "step_host_syncs": syncs, "sampler_ms_by_lanes": lanes_ms}
             records.append(rec)
             write_result(result, {**meta, "rows": records})  # each row as it comes (a time limit keeps the rest)
-            print(f"{res}² × {B} views: sampler {rec['sampler_ms']:.1f} ms, step {rec['step_ms']:.1f} ms",
-                  file=sys.stderr, flush=True)
+            by_lanes = ", ".join(f"{k}: {v:.1f}" for k, v in lanes_ms.items())
+            print(f"{res}² × {B} views: sampler {rec['sampler_ms']:.1f} ms (by lanes: {by_lanes or '-'}), "
+                  f"step {rec['step_ms']:.1f} ms", file=sys.stderr, flush=True)
             target_txt = f"≤ {rec['target_step_ms']:g}" if rec["target_step_ms"] else "–"
             loop_txt = f"{rec['loop_step_ms']:.1f}" if loop_ms else "–"
             rows.append([f"{res}²", B, rec["features"], f"{rec['sampler_ms']:.1f}", f"{rec['step_ms']:.1f}",

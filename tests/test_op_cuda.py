@@ -29,6 +29,7 @@ import torch
 import nsplat.ops.library as library
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
 from nsplat.ops.reference import MIN_TOTAL, size_measures, sps_bruteforce
+from nsplat.ops.rng import stratified_uniforms
 from nsplat.ops.validation import inclusion_for
 from nsplat.ops.build import CSRC, build_dir, cxx_standard, source_hash
 from tests.conftest import make_cameras, make_scene
@@ -357,7 +358,19 @@ def _emulate(monkeypatch, emulated):
                                                                         scatter_backward=False))
 
 
-def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold"):
+def _sorted_keys(lam, m, seed, camera, width, stratified):
+    """Each pixel's sorted log keys ``[P, m + 1]`` (``sps_bruteforce``'s; stratified draws: ops/rng.py)."""
+    if not stratified:
+        return sps_bruteforce(lam, m, seed, camera)[1]
+    P, N = lam.shape
+    u = stratified_uniforms(seed, camera, np.arange(P), np.arange(N), width)
+    with np.errstate(divide="ignore"):
+        keys = np.where(lam.numpy() > 0, np.log(u) - np.log(lam.numpy()), np.inf)
+    keys = np.sort(keys, axis=1)[:, : m + 1]
+    return np.pad(keys, ((0, 0), (0, m + 1 - keys.shape[1])), constant_values=np.inf)
+
+
+def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold", stratified=False):
     """Two backends' samples of the same projected scene ``proj`` and seed (``sample``'s outputs). Each is the exact
     SPS sample, with the exact threshold xi_(m+1), except on a fraction <= eps of the pixels, so they differ on at
     most ~2 eps of them (binomial bound at 4 sigma, + 1): a pixel differs when its index sets differ or, with
@@ -372,7 +385,8 @@ def assert_same_sample_law(got, ref, eps, proj, seed, inclusion="threshold"):
     for b in range(B):
         lam = size_measures(proj, b, W, H)
         # a [B] seed: camera b draws as camera 0 of a call with seed[b] (tests/test_op_camera_seeds.py)
-        _, keys = sps_bruteforce(lam, m, *((int(seed), b) if torch.as_tensor(seed).dim() == 0 else (int(seed[b]), 0)))
+        keys = _sorted_keys(lam, m, *((int(seed), b) if torch.as_tensor(seed).dim() == 0 else (int(seed[b]), 0)), W,
+                            stratified)
         dense = lam.sum(1).numpy()
         for idx, tot in ((gi[b], gt[b]), (ri[b], rt[b])):
             full = (idx.reshape(-1, m) >= 0).all(1).numpy()
@@ -463,6 +477,58 @@ def test_emulated_cuda_per_camera_seeds_sample_as_one_call_per_view(emulated, mo
         for a, c in zip(alone, got):
             assert torch.equal(a, c[b:b + 1])
     monkeypatch.undo()
+
+
+@pytest.mark.parametrize("lanes", [1, 2, 3, 8, 16])
+@pytest.mark.parametrize("stratified,inclusion", [(False, "threshold"), (True, "threshold"), (False, "pips")])
+def test_emulated_cuda_pixel_lanes_draw_the_cpu_law(emulated, monkeypatch, lanes, stratified, inclusion):
+    """Several threads per pixel (tile.h, "Lanes": lane j searches the items j mod L with the budget eps / L and
+    the floor kMinTotal / L; a lane stopped by its floor searches again unless the pixel is certified below the
+    floor; the heaps merge into the m smallest keys): the CPU backend's SPS law and Lambda_hat bounds whatever
+    the lane count, on a scene with pruning and with pixels in the floor's band; bitwise the same run to run."""
+    sc = make_scene(2000, 4, C=3, scale=(0.01, 0.05))
+    V, K = make_cameras(2, 40, 32)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    kw = dict(samples=10, eps=0.01, seed=11, stratified=stratified, inclusion=inclusion)
+    ref = sample(proj, K, 40, 32, **kw)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", str(lanes))
+    _emulate(monkeypatch, emulated)
+    got = sample(proj, K, 40, 32, **kw)
+    again = sample(proj, K, 40, 32, **kw)
+    monkeypatch.undo()
+    assert all(torch.equal(a, b) for a, b in zip(got, again))
+    assert_same_sample_law(got, ref, 0.01, proj, 11, inclusion=inclusion, stratified=stratified)
+    total, work = got[2], got[3]
+    assert int(work.max()) < 2000, "the scene is meant to exercise pruning"
+    lam = torch.stack([size_measures(proj, b, 40, 32).sum(1) for b in range(2)]).reshape(total.shape)
+    band = (lam > MIN_TOTAL / 4) & (lam < 4 * MIN_TOTAL)
+    assert int(band.sum()) >= 20, "the scene is meant to have pixels near the floor"
+    assert bool((total[lam < MIN_TOTAL / 2] == 0).all()) and bool((total[lam > 2 * MIN_TOTAL] > 0).all())
+
+
+@pytest.mark.parametrize("lanes,m", [(2, 1), (2, 2), (4, 2), (3, 5)])
+def test_emulated_cuda_pixel_lanes_small_samples(emulated, monkeypatch, lanes, m):
+    """Small m against the lanes' heaps: the pixel's xi_(m+1) is often the key right after one lane's full heap
+    (that lane's own threshold), which the inclusion probabilities min(1, lambda xi_(m+1)) must use."""
+    sc = make_scene(1200, 7, C=3, scale=(0.01, 0.05))
+    V, K = make_cameras(2, 32, 24)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    ref = sample(proj, K, 32, 24, samples=m, eps=0.01, seed=3)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", str(lanes))
+    _emulate(monkeypatch, emulated)
+    got = sample(proj, K, 32, 24, samples=m, eps=0.01, seed=3)
+    monkeypatch.undo()
+    assert_same_sample_law(got, ref, 0.01, proj, 3)
+
+
+def test_emulated_cuda_pixel_lanes_setting_is_checked(emulated, monkeypatch):
+    sc = make_scene(50, 1, C=3)
+    V, K = make_cameras(1, 8, 8)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", "0")
+    _emulate(monkeypatch, emulated)
+    with pytest.raises(RuntimeError, match=r"NSPLAT_CUDA_PIXEL_LANES must be an integer in \[1, 16\], got '0'"):
+        sample(proj, K, 8, 8, samples=4)
 
 
 @pytest.mark.parametrize("N,m,C,W,H", [(0, 5, 3, 9, 7), (1, 5, 3, 9, 7), (3, 5, 3, 9, 7), (60, 300, 3, 10, 8),

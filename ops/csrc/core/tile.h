@@ -8,18 +8,28 @@
 // tree is in exactly one item, so nothing is dropped at the tile level. Items whose bound over R is below
 // a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel.
 //
-// Pixel pass (sample_pixel): every near item gets its bound U_i(x) at the pixel centre (the smaller of the
-// isotropic box bound and the ellipse bound of ItemMetric); items are visited in decreasing bound order,
-// bucketed in bins of kBinWidth in log U (stable within a bin, so the order is the same with a counting sort
-// (CPU) or with one sweep per bin (CUDA)). Before each item, with R a bound of the summed bounds of the
-// items not yet visited and P the mass pruned inside subtrees, the search stops when (P + R) xi_(m+1) < eps
-// (the remaining items are pruned), or when visited + P + R < kMinTotal (the pixel is certainly below the
-// floor and stays empty). This spends the budget eps / xi_(m+1) on the smallest bounds only, and xi_(m+1)
-// drops early because the largest lambdas come first. The guarantee is the one of sps.h: at the end
-// P_total xi_(m+1) < eps, so the sample and xi_(m+1) are the exact SPS ones except with probability < eps
-// (union bound over the unvisited points, whose draws are independent of the visited ones), and
-// |Lambda_hat - Lambda| <= P_total. The draws are the same (a point's u depends on the pixel and the point
-// only), only the order of the visits and the set of visited points change.
+// Pixel pass (sample_lane, the CUDA sampler; the CPU's tile lanes in cpu/lanes.h visit in tile order instead):
+// every near item gets its bound U_i(x) at the pixel centre (the smaller of the isotropic box bound and the
+// ellipse bound of ItemMetric); items are visited in decreasing bound order, bucketed in bins of kBinWidth in
+// log U (stable within a bin). Before each item, with R a bound of the summed bounds of the items not yet
+// visited and P the mass pruned inside subtrees, the search stops when (P + R) xi_(m+1) < eps (the remaining
+// items are pruned), or when visited + P + R < kMinTotal (the pixel is certainly below the floor and stays
+// empty). This spends the budget eps / xi_(m+1) on the smallest bounds only, and xi_(m+1) drops early because
+// the largest lambdas come first. The guarantee is the one of sps.h: at the end P_total xi_(m+1) < eps, so the
+// sample and xi_(m+1) are the exact SPS ones except with probability < eps (union bound over the unvisited
+// points, whose draws are independent of the visited ones), and |Lambda_hat - Lambda| <= P_total. The draws are
+// the same (a point's u depends on the pixel and the point only), only the order of the visits and the set of
+// visited points change.
+//
+// Lanes (several threads per pixel when the image has too few pixels to fill a GPU): lane j of K searches the
+// items i = j (mod K) of the tile's list alone, with the budget eps / K and the floor kMinTotal / K, keeping its
+// own heap of its m smallest keys and its own threshold xi_j (the smallest of its keys outside its heap). The
+// pixel's sample is the m smallest keys of the lanes' heaps (every key outside lane j's heap has m smaller keys
+// in it), and xi_(m+1) the smallest key left: the next heap entry or the smallest xi_j. Every xi_j >= xi_(m+1),
+// so P_total xi_(m+1) <= sum_j P_j xi_j < K eps / K = eps: the same guarantee. A lane stopped by its floor test
+// has pruned mass outside its budget: when the lanes' bounds (visited + P_j) sum below kMinTotal the pixel is
+// certainly below the floor and stays empty; otherwise each such lane searches again without the floor test.
+// So a pixel's result is that of lanes without floor tests, or empty when certified below the floor.
 #pragma once
 #include "sps.h"
 
@@ -217,72 +227,77 @@ NS_HD void visit_item(const TreeView& T, const TileItem& it, double u, double v,
   }
 }
 
-// Scratch of the pixel pass (sample_pixel's Sorted argument says which):
-//   Sorted: order, bins (n_near ints each): the near items are counting-sorted by bin once (CPU);
-//   !Sorted: bin8 (one byte per near item, bin8_stride bytes apart): each visited bin sweeps the near items'
-//     bytes (CUDA: a tile's pixels interleave their bytes, and a per-pixel int scratch would not fit).
-struct PixelScratch {
-  int* order;
-  int* bins;
-  uint8_t* bin8;
-  int64_t bin8_stride;
-};
+// One step of the pixel pass before visiting an item: stops the search when the pending bound mass R plus
+// the pruned mass is within the budget (kStopEps) or, with `floor` > 0, when visited + pruned + R < floor
+// (kStopFloor: the searched mass is certainly below the floor). Either way R joins the pruned mass.
+enum StopReason { kGoOn = 0, kStopEps = 1, kStopFloor = 2 };
 
-// One step of the pixel pass before visiting an item: stops the search (true) when the pending bound mass R
-// plus the pruned mass is below the floor or within the budget (see the file comment).
-NS_HD bool stop_before_item(PixelState& S, double R, double log_eps) {
+NS_HD int stop_before_item(PixelState& S, double R, double log_eps, double floor) {
   const double pruned = S.log_pruned == -INFINITY ? 0.0 : fast_exp(S.log_pruned);
-  if (S.visited + pruned + R < kMinTotal) {  // Lambda is certainly below the floor: the pixel stays empty
+  if (S.visited + pruned + R < floor) {
     S.log_pruned = log_add_exp(S.log_pruned, log(R));
     S.pruned_est += 0.5 * R;
-    return true;
+    return kStopFloor;
   }
   if (S.rest < INFINITY && pruned + R < S.budget) {  // linear pre-test; the log-domain test decides
     const double lp = log_add_exp(S.log_pruned, log(R));
     if (lp + S.rest < log_eps) {
       S.log_pruned = lp;
       S.pruned_est += 0.5 * R;
-      return true;
+      return kStopEps;
     }
   }
-  return false;
+  return kGoOn;
 }
 
-// The SPS sample of pixel (u, v) from its tile's items (see the file comment), arranged by
-// arrange_tile_items (n_near near items first). Near items are binned by their bound at the pixel, far items
-// by their (larger) bound over the tile; a bin's near items are visited before its far ones, each in Morton
-// order, whichever scratch is used (PixelScratch). On return idx[0..cnt) holds original point ids, key[] is
-// scratch.
+// Outcome of one lane's search (sample_lane); its sample is the heap key/idx[0..cnt).
+struct LaneStats {
+  PixelStats px;   // total: visited + pruned estimate; rest: the lane's own xi_(m+1); exhaustive: nothing pruned
+  double bound;    // visited + pruned bound mass: a rigorous upper bound of the lane's items' total at the pixel
+  int cnt;         // sample size (heap entries)
+  bool floored;    // stopped by the floor test (its pruned mass is outside the eps budget)
+};
+
+// The SPS search of pixel (u, v) over the items of lane `lane` of `lanes` (items i with i % lanes == lane of the
+// tile's list, arranged by arrange_tile_items: n_near near items first): the pixel pass of the file comment
+// restricted to those items. A lane alone (lanes = 1, log_eps = log eps, floor = kMinTotal) is the whole pixel's
+// search. Near items are binned by their bound at the pixel, far items by their (larger) bound over the tile; a
+// bin's near items are visited before its far ones, each in Morton order. The near items' bins go to one byte
+// each at bin8[i * bin8_stride] (a tile's pixels interleave their bytes; each visited bin sweeps them: a per-pixel
+// int scratch would not fit on a GPU). key/idx: the lane's m-entry heap (original point ids).
 //
 // Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
 // the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
 // bound in it). This overestimates the pending mass by less than exp(kBinWidth), with exact integer counts
 // instead of running differences of floating-point sums. The per-bin arrays are few (on a GPU they live in
 // local memory): the bin tops and the bins' first items are recomputed in the loop, bit for bit.
-template <bool Sorted>
-NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
-                              const Draw& draw, int m, double log_eps, double* key, int* idx, int* cnt,
-                              const PixelScratch& scratch) {
-  PixelStats st{0.0, INFINITY, 0, 0, true};
-  *cnt = 0;
-  int near[kBins], far[kBins];
-  for (int b = 0; b < kBins; ++b) near[b] = far[b] = 0;
+NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
+                            const Draw& draw, int m, double log_eps, double floor, int lane, int lanes, double* key,
+                            int* idx, uint8_t* bin8, int64_t bin8_stride) {
+  LaneStats out{{0.0, INFINITY, 0, 0, true}, 0.0, 0, false};
+  int near[kBins], far[kBins], far_all[kBins];  // the lane's items per bin; every far item per bin
+  for (int b = 0; b < kBins; ++b) near[b] = far[b] = far_all[b] = 0;
   double lb0 = -INFINITY;  // largest near bound (bin 0's top; far items are never in bin 0)
   int nb = 0;              // bins in use: every item is in a bin < nb
-  for (int i = 0; i < n_near; ++i) {
+  int own = 0;             // the lane's items
+  for (int i = lane; i < n_near; i += lanes, ++own) {
     const double lb = item_log_bound(items[i], u, v);
     const int b = bound_bin(lb);
     lb0 = dmax(lb0, lb);
     ++near[b];
     nb = imax(nb, b + 1);
-    if constexpr (Sorted) scratch.bins[i] = b;
-    else scratch.bin8[i * scratch.bin8_stride] = static_cast<uint8_t>(b);
+    bin8[i * bin8_stride] = static_cast<uint8_t>(b);
   }
   for (int i = n_near; i < n; ++i) {
-    ++far[items[i].tile_bin];
-    nb = imax(nb, items[i].tile_bin + 1);
+    const int b = items[i].tile_bin;
+    ++far_all[b];
+    nb = imax(nb, b + 1);
+    if (i % lanes == lane) {
+      ++far[b];
+      ++own;
+    }
   }
-  st.nodes = n_near;
+  out.px.nodes = (n_near - lane + lanes - 1) / lanes;
   // top_b >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products;
   // suffix[b] = sum_{b' >= b} count_b' top_b' (filled with the tops first, then summed in place)
   const double top0 = fast_exp(lb0) * (1.0 + 1e-12), top1 = exp(kBinTop) * (1.0 + 1e-12);
@@ -295,64 +310,50 @@ NS_HD PixelStats sample_pixel(const TreeView& T, const TileItem* items, int n, i
   }
   suffix[nb] = 0.0;
   for (int b = nb - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * suffix[b];
-  if (suffix[0] < kMinTotal) {  // certainly below the floor
-    st.exhaustive = n == 0;
-    return st;
-  }
-  if constexpr (Sorted) {  // near items by bin: order[near_at_b .. near_at_b + near[b])
-    int fill[kBins];
-    for (int b = 0, at = 0; b < nb; ++b) {
-      fill[b] = at;
-      at += near[b];
-    }
-    for (int i = 0; i < n_near; ++i) scratch.order[fill[scratch.bins[i]]++] = i;
+  if (suffix[0] < floor) {  // certainly below the floor
+    out.px.exhaustive = own == 0;
+    out.floored = own > 0;
+    out.bound = suffix[0];
+    return out;
   }
   PixelState S = pixel_state(key, idx, m, log_eps);
-  bool stopped = false;
-  int near_at = 0, far_at = n_near;  // bin b's first near item in `order` (Sorted), its first far item
+  int stop = kGoOn;
+  int far_at = n_near;  // bin b's first far item
   t = top1;
-  for (int b = 0; b < nb && !stopped; ++b) {
+  for (int b = 0; b < nb && stop == kGoOn; ++b) {
     if (b > 0) t *= kBinStep;
     const double top = b == 0 ? top0 : t, rest = suffix[b + 1];
-    int left = near[b] + far[b];  // items of bin b not yet visited
+    int left = near[b] + far[b];  // the lane's items of bin b not yet visited
     // near items of bin b, in Morton order
-    if constexpr (Sorted) {
-      for (int j = near_at; j < near_at + near[b] && !stopped; ++j) {
-        stopped = stop_before_item(S, left * top + rest, log_eps);
-        if (!stopped) {
-          --left;
-          visit_item(T, items[scratch.order[j]], u, v, draw, S);
-        }
-      }
-    } else {
-      for (int i = 0, found = 0; found < near[b] && !stopped; ++i) {
-        if (scratch.bin8[i * scratch.bin8_stride] != b) continue;
-        ++found;
-        stopped = stop_before_item(S, left * top + rest, log_eps);
-        if (!stopped) {
-          --left;
-          visit_item(T, items[i], u, v, draw, S);
-        }
-      }
-    }
-    // then its far items
-    for (int i = far_at; i < far_at + far[b] && !stopped; ++i) {
-      stopped = stop_before_item(S, left * top + rest, log_eps);
-      if (!stopped) {
+    for (int i = lane, found = 0; found < near[b] && stop == kGoOn; i += lanes) {
+      if (bin8[i * bin8_stride] != b) continue;
+      ++found;
+      stop = stop_before_item(S, left * top + rest, log_eps, floor);
+      if (stop == kGoOn) {
         --left;
         visit_item(T, items[i], u, v, draw, S);
       }
     }
-    near_at += near[b];
-    far_at += far[b];
+    // then its far items
+    for (int i = far_at; i < far_at + far_all[b] && stop == kGoOn; ++i) {
+      if (i % lanes != lane) continue;
+      stop = stop_before_item(S, left * top + rest, log_eps, floor);
+      if (stop == kGoOn) {
+        --left;
+        visit_item(T, items[i], u, v, draw, S);
+      }
+    }
+    far_at += far_all[b];
   }
-  *cnt = S.cnt;
-  st.total = S.visited + S.pruned_est;
-  st.rest = S.rest;
-  st.evaluated = S.evaluated;
-  st.nodes += S.nodes;
-  st.exhaustive = S.log_pruned == -INFINITY;
-  return st;
+  out.cnt = S.cnt;
+  out.px.total = S.visited + S.pruned_est;
+  out.px.rest = S.rest;
+  out.px.evaluated = S.evaluated;
+  out.px.nodes += S.nodes;
+  out.px.exhaustive = S.log_pruned == -INFINITY;
+  out.bound = S.visited + (S.log_pruned == -INFINITY ? 0.0 : exp(S.log_pruned));
+  out.floored = stop == kStopFloor;
+  return out;
 }
 
 }  // namespace nsplat

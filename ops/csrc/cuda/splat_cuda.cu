@@ -2,7 +2,8 @@
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
 //   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists, then one
-//                                   thread per pixel, a tile's pixels on consecutive threads
+//                                   or more threads per pixel (lanes, tile.h), a tile's pixels on consecutive
+//                                   threads; with several lanes a merge kernel, one thread per pixel
 //   composite_forward_cuda          one thread per (camera, pixel)
 //   composite_backward_pixels_cuda  pass 1, one thread per (camera, pixel)
 //   composite_backward_points_cuda  pass 2, one thread per point over its entries sorted by (point, camera)
@@ -11,7 +12,8 @@
 // math). No atomics in the outputs: results are deterministic run to run.
 //
 // Memory: the per-pixel heap lives in global memory (the `indices` output plus a double key scratch of
-// pixels x samples per camera), so `samples` is limited by memory only; all slot offsets are 64-bit. The
+// pixels x samples per camera; with L lanes per pixel, L heaps of (double, int) entries, their LaneStats and one
+// merged key scratch), so `samples` is limited by memory only; all slot offsets are 64-bit. The
 // tile items take sizeof(TileItem) (120 B) each, twice while they are arranged; the near items' per-pixel bins
 // one byte per (item, tile pixel), at most kBinScratchBytes per sampling launch.
 //
@@ -23,6 +25,8 @@
 // sequentially over their grid on the CPU (emulate.h), cub's sort/scan are replaced by std ones (launch.h). Tests use
 // that build to check the launch code against the CPU backend bit for bit on machines without a GPU.
 #include "launch.h"
+
+#include <cstdlib>
 
 #include "../core/composite.h"
 #include "../core/sps.h"
@@ -41,6 +45,12 @@ constexpr int kFeatChunk = 8;       // channels accumulated in registers at once
 #define NSPLAT_BIN_SCRATCH_BYTES (int64_t(256) << 20)
 #endif
 constexpr int64_t kBinScratchBytes = NSPLAT_BIN_SCRATCH_BYTES;
+// Threads per pixel of the sampler (tile.h, "Lanes"): the largest power of two up to kMaxPixelLanes that keeps
+// pixels x lanes <= kLaneThreads (about one H100's resident threads) and the lanes' heaps within
+// kLaneScratchBytes. NSPLAT_CUDA_PIXEL_LANES=<k> sets it (tests, timing).
+constexpr int kMaxPixelLanes = 16;
+constexpr int64_t kLaneThreads = int64_t(1) << 18;
+constexpr int64_t kLaneScratchBytes = int64_t(1) << 30;
 
 // The CPU builder's std::min / std::max (NaN never replaces the running value).
 __device__ __forceinline__ double cpu_min(double cur, double x) { return x < cur ? x : cur; }
@@ -330,18 +340,66 @@ __global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, in
 
 constexpr int kTilePixels = kTileSize * kTileSize;
 
-// Sampling of camera b over tiles [t0, t1): the CPU tile loop body, kTilePixels consecutive threads per tile
-// (one per pixel, idle past the image's edge) so that a warp's threads read the same item lists. Near-item
-// bins go to `bin8` (PixelScratch), the tile's pixels' bytes interleaved: item i of tile t, pixel l at
-// bin8[(offsets[t] - offsets[t0] + i) * kTilePixels + l]. `key` is a pixels x m double scratch.
+// Sampling of camera b over tiles [t0, t1), `lanes` threads per pixel (tile.h, "Lanes"): thread g takes tile
+// t0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the tile, so that the
+// 16 threads of a (tile, lane) read the same items (idle past the image's edge). Near-item bins go to `bin8`,
+// the tile's pixels' bytes interleaved: item i of tile t, pixel l at bin8[(offsets[t] - offsets[t0] + i) *
+// kTilePixels + l] (item i belongs to lane i % lanes: each byte has one writer). With one lane the pixel is
+// finished here (`key` is a pixels x m double scratch); with several each lane leaves its heap in lane_key /
+// lane_idx [pixels x lanes x m] and its LaneStats in lane_stats [pixels x lanes] for merge_kernel.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
-                  double log_eps, uint64_t seed, int64_t camera, int inclusion, bool stratified,
+                  double log_eps, int lanes, uint64_t seed, int64_t camera, int inclusion, bool stratified,
                   const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
                   const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
-                  uint8_t* __restrict__ bin8, double* __restrict__ key_scratch, int* __restrict__ idx_b,
-                  S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
+                  uint8_t* __restrict__ bin8, double* __restrict__ key_scratch, int* __restrict__ lane_idx,
+                  LaneStats* __restrict__ lane_stats, int* __restrict__ idx_b, S* __restrict__ prob_b,
+                  S* __restrict__ total_b, int* __restrict__ work_b) {
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
+  NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
+    const int64_t t = t0 + g / per_tile;
+    const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
+    const int64_t px = (t % tiles_x) * kTileSize + l % kTileSize, py = (t / tiles_x) * kTileSize + l / kTileSize;
+    if (px >= width || py >= height) continue;
+    const int64_t p = py * width + px;
+    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
+    const Draw draw = pixel_draw(seed, camera, p, width, stratified);
+    const int n = static_cast<int>(offsets[t + 1] - offsets[t]);
+    uint8_t* bins = bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l;
+    if (lanes == 1) {
+      int* idx = idx_b + p * m;
+      double* key = key_scratch + p * m;
+      const LaneStats ls = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps, kMinTotal,
+                                       0, 1, key, idx, bins, kTilePixels);
+      const Ray ray = pixel_ray(K, u, v);
+      finalize_pixel(sv, u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest, ls.px.exhaustive && ls.px.evaluated == ls.cnt,
+                     inclusion, key, idx, prob_b + p * m);
+      total_b[p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
+      work_b[p] = ls.px.evaluated;
+    } else {
+      const int64_t o = p * lanes + lane;
+      lane_stats[o] = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps,
+                                  kMinTotal / lanes, lane, lanes, key_scratch + o * m, lane_idx + o * m, bins,
+                                  kTilePixels);
+    }
+  }
+}
+
+// The lanes' heaps of each pixel of tiles [t0, t1) merged into its sample (tile.h, "Lanes"), one thread per
+// pixel: a pixel whose lanes' bounds sum below kMinTotal stays empty; otherwise every lane stopped by its floor
+// test searches again without it, the lanes' heaps are sorted and merged by (key, id) into the m smallest, and
+// xi_(m+1) is the smallest key left (the next heap entry or a lane's own threshold). `merged` is a pixels x m
+// double scratch.
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    merge_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
+                 double log_eps, int lanes, uint64_t seed, int64_t camera, int inclusion, bool stratified,
+                 const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
+                 const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
+                 uint8_t* __restrict__ bin8, double* __restrict__ lane_key, int* __restrict__ lane_idx,
+                 LaneStats* __restrict__ lane_stats, double* __restrict__ merged, int* __restrict__ idx_b,
+                 S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
   NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
     const int64_t t = t0 + g / kTilePixels;
     const int l = static_cast<int>(g % kTilePixels);
@@ -349,18 +407,59 @@ __global__ void __launch_bounds__(kPixelThreads)
     if (px >= width || py >= height) continue;
     const int64_t p = py * width + px;
     const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    const Draw draw = pixel_draw(seed, camera, p, width, stratified);
-    int cnt = 0;
+    LaneStats* ls = lane_stats + p * lanes;
+    double bound = 0.0;
+    for (int j = 0; j < lanes; ++j) bound += ls[j].bound;
+    double* key = merged + p * m;
     int* idx = idx_b + p * m;
-    double* key = key_scratch + p * m;
-    const PixelScratch scratch{nullptr, nullptr, bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l, kTilePixels};
-    const PixelStats st = sample_pixel<false>(tv, items + offsets[t], static_cast<int>(offsets[t + 1] - offsets[t]),
-                                       near_counts[t], u, v, draw, m, log_eps, key, idx, &cnt, scratch);
     const Ray ray = pixel_ray(K, u, v);
-    finalize_pixel(sv, u, v, ray, m, cnt, st.total, st.rest, st.exhaustive && st.evaluated == cnt, inclusion, key, idx,
+    int cnt = 0, evaluated = 0;
+    double total = 0.0, rest = INFINITY;
+    bool exhaustive = true;
+    if (bound >= kMinTotal) {
+      const Draw draw = pixel_draw(seed, camera, p, width, stratified);
+      const int n = static_cast<int>(offsets[t + 1] - offsets[t]);
+      uint8_t* bins = bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l;
+      int at[kMaxPixelLanes];
+      for (int j = 0; j < lanes; ++j) {
+        const int64_t o = p * lanes + j;
+        if (ls[j].floored)
+          ls[j] = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps, 0.0, j, lanes,
+                              lane_key + o * m, lane_idx + o * m, bins, kTilePixels);
+        heap_sort(lane_key + o * m, lane_idx + o * m, ls[j].cnt);
+        at[j] = 0;
+        total += ls[j].px.total;
+        evaluated += ls[j].px.evaluated;
+        exhaustive = exhaustive && ls[j].px.exhaustive;
+        rest = dmin(rest, ls[j].px.rest);
+      }
+      // k-way merge of the sorted heaps; then the smallest entry left bounds xi_(m+1) too
+      for (; cnt <= m; ++cnt) {
+        int best = -1;
+        for (int j = 0; j < lanes; ++j) {
+          if (at[j] == ls[j].cnt) continue;
+          const int64_t e = (p * lanes + j) * m + at[j];
+          if (best < 0 || key_less(lane_key[e], lane_idx[e], lane_key[(p * lanes + best) * m + at[best]],
+                                   lane_idx[(p * lanes + best) * m + at[best]]))
+            best = j;
+        }
+        if (best < 0) break;
+        const int64_t e = (p * lanes + best) * m + at[best];
+        if (cnt == m) {
+          rest = dmin(rest, lane_key[e]);
+          break;
+        }
+        key[cnt] = lane_key[e];
+        idx[cnt] = lane_idx[e];
+        ++at[best];
+      }
+    } else {
+      for (int j = 0; j < lanes; ++j) evaluated += ls[j].px.evaluated;
+    }
+    finalize_pixel(sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, inclusion, key, idx,
                    prob_b + p * m);
-    total_b[p] = static_cast<S>(st.total < kMinTotal ? 0.0 : st.total);
-    work_b[p] = st.evaluated;
+    total_b[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
+    work_b[p] = evaluated;
   }
 }
 
@@ -469,6 +568,20 @@ __global__ void __launch_bounds__(kPixelThreads)
   }
 }
 
+// Threads per pixel for a P-pixel image and sample size m (see kMaxPixelLanes).
+int pixel_lanes(int64_t P, int64_t m) {
+  if (const char* env = std::getenv("NSPLAT_CUDA_PIXEL_LANES")) {
+    const int k = std::atoi(env);
+    TORCH_CHECK(k >= 1 && k <= kMaxPixelLanes, "NSPLAT_CUDA_PIXEL_LANES must be an integer in [1, ", kMaxPixelLanes,
+                "], got '", env, "'");
+    return k;
+  }
+  const int64_t per_lane = std::max<int64_t>(P, 1) * (m * 12 + static_cast<int64_t>(sizeof(LaneStats)));
+  int k = 1;
+  while (2 * k <= kMaxPixelLanes && 2 * k * P <= kLaneThreads && 2 * k * per_lane <= kLaneScratchBytes) k *= 2;
+  return k;
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------------------
@@ -489,8 +602,16 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   at::Tensor work = at::empty({B, height, width, 1}, opts.dtype(at::kInt));
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   if (P == 0 || B == 0) return {indices, probs, total, work};
-  at::Tensor key_scratch = at::empty({P * m}, opts.dtype(at::kDouble));  // reused by every camera
-  const double log_eps = std::log(eps);
+  const int lanes = pixel_lanes(P, m);
+  // per-pixel heaps, reused by every camera: one per lane (lanes > 1: merged into `merged`)
+  at::Tensor key_scratch = at::empty({P * lanes * m}, opts.dtype(at::kDouble));
+  at::Tensor lane_idx, lane_stats, merged;
+  if (lanes > 1) {
+    lane_idx = at::empty({P * lanes * m}, opts.dtype(at::kInt));
+    lane_stats = bytes(P * lanes * static_cast<int64_t>(sizeof(LaneStats)), opts);
+    merged = at::empty({P * m}, opts.dtype(at::kDouble));
+  }
+  const double log_eps = std::log(eps), lane_log_eps = std::log(eps / lanes);
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
   const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
   const int64_t* st = streams.data_ptr<int64_t>();  // (seed, camera) of each camera, on the host
@@ -535,13 +656,28 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
         int64_t t1 = t0 + 1;
         while (t1 < tiles && off_h[t1 + 1] - off_h[t0] <= chunk_items) ++t1;
         if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
-        NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
-            tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, static_cast<int>(m), log_eps,
-            static_cast<uint64_t>(st[2 * b]), st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items),
-            offsets.data_ptr<int64_t>(), near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8),
-            key_scratch.data_ptr<double>(), indices.data_ptr<int>() + b * P * m, probs.data_ptr<S>() + b * P * m,
-            total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P);
+        const SplatsView<S> sv = base.camera(b);
+        const double* Kb = Kd.data_ptr<double>() + b * 9;
+        const uint64_t seed = static_cast<uint64_t>(st[2 * b]);
+        int* idx = indices.data_ptr<int>() + b * P * m;
+        S* prob = probs.data_ptr<S>() + b * P * m;
+        S* tot = total.data_ptr<S>() + b * P;
+        int* wk = work.data_ptr<int>() + b * P;
+        NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads, stream,
+            tv, sv, Kb, width, height, static_cast<int>(m), lanes == 1 ? log_eps : lane_log_eps, lanes, seed,
+            st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets.data_ptr<int64_t>(),
+            near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
+            lanes > 1 ? lane_idx.data_ptr<int>() : nullptr, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, idx,
+            prob, tot, wk);
         NS_LAUNCH_CHECK();
+        if (lanes > 1) {
+          NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
+              tv, sv, Kb, width, height, static_cast<int>(m), lane_log_eps, lanes, seed, st[2 * b + 1],
+              static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets.data_ptr<int64_t>(),
+              near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
+              lane_idx.data_ptr<int>(), as<LaneStats>(lane_stats), merged.data_ptr<double>(), idx, prob, tot, wk);
+          NS_LAUNCH_CHECK();
+        }
         t0 = t1;
       }
       // The tree's tensors go back to the caching allocator here, in stream order.
