@@ -23,7 +23,7 @@ from .output import SplatOutput
 from .projection import Projected, project, project_checked
 from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_allocation, check_backface_cull,
                          check_composite_call, check_deterministic, check_devices, check_geometry, check_sample_call,
-                         check_sampling, check_settings, inclusion_for, native_estimator)
+                         check_sampling, check_settings, inclusion_for, native_estimator, value_checks)
 
 _PROJECTED_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
@@ -96,8 +96,9 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
                           stratified=stratified)
     if inclusion not in INCLUSIONS:
         raise ValueError(f"inclusion: expected one of {INCLUSIONS}, got {inclusion!r}")
-    check_sample_call(proj, Ks, width, height, samples=samples, eps=eps, seed=seed, hermite_order=hermite_order,
-                      hermite_tol=hermite_tol, stratified=stratified)
+    with value_checks():
+        check_sample_call(proj, Ks, width, height, samples=samples, eps=eps, seed=seed, hermite_order=hermite_order,
+                          hermite_tol=hermite_tol, stratified=stratified)
     return _sample_op(proj, Ks, width, height, samples, eps, seed, hermite_order, hermite_tol, inclusion, stratified)
 
 
@@ -141,7 +142,8 @@ def composite_sample(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, 
             return composite_sample(_projected_float32(proj), _to_float32(features), _to_float32(Ks), indices,
                                     _to_float32(probs), background=_to_float32(background), composite=composite,
                                     estimator=estimator, deterministic=deterministic)
-    check_composite_call(proj, features, Ks, indices, probs, background, composite, estimator, deterministic)
+    with value_checks():
+        check_composite_call(proj, features, Ks, indices, probs, background, composite, estimator, deterministic)
     if composite not in COMPOSITES:
         raise ValueError(f"composite: expected one of {COMPOSITES}, got {composite!r}")
     if estimator not in ESTIMATORS:
@@ -229,13 +231,14 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
                          background=_to_float32(background), near=near, far=far, lowpass=lowpass, seed=seed,
                          hermite_order=hermite_order, hermite_tol=hermite_tol, deterministic=deterministic,
                          stratified=stratified, backface_cull=backface_cull)
-    N, C, B = check_geometry(means, normals, scales, opacities, features, viewmats, Ks)
-    check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
-                   background=background, C=C, dtype=means.dtype, device=means.device)
-    check_sampling(samples=samples, eps=eps, estimator=estimator, seed=seed, hermite_order=hermite_order,
-                   hermite_tol=hermite_tol, stratified=stratified, cameras=B)
-    check_deterministic(deterministic)
-    check_backface_cull(backface_cull)
+    with value_checks():  # one host read for every value check of the inputs
+        N, C, B = check_geometry(means, normals, scales, opacities, features, viewmats, Ks)
+        check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite=composite,
+                       background=background, C=C, dtype=means.dtype, device=means.device)
+        check_sampling(samples=samples, eps=eps, estimator=estimator, seed=seed, hermite_order=hermite_order,
+                       hermite_tol=hermite_tol, stratified=stratified, cameras=B)
+        check_deterministic(deterministic)
+        check_backface_cull(backface_cull)
     for stage in ("sample", "composite"):  # before any work: the projection alone can take minutes
         check_allocation(B=B, N=N, C=C, width=width, height=height, samples=samples, dtype=means.dtype,
                          device=means.device, what=stage)

@@ -21,7 +21,8 @@ import torch
 
 from .fixed_order import expand_fixed
 from .library import project_op
-from .validation import TINY_DET_F32, check_geometry, check_projection_numerics, check_range, values_checked
+from .validation import (TINY_DET_F32, check_geometry, check_projection_numerics, check_range, value_checks,
+                         values_checked)
 
 ALPHA_MAX = 0.99
 #: A ray whose cosine with a splat's plane normal is below this uses the splat's centre depth.
@@ -96,8 +97,9 @@ def project(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, op
     Raises ``TypeError``/``ValueError`` naming the argument for invalid inputs (as :func:`nsplat.ops.splat`)
     and for the float hazards of ``ops/validation.py::check_projection_numerics``.
     """
-    check_geometry(means, normals, scales, opacities, None, viewmats, Ks)
-    check_range(near=near, far=far, lowpass=lowpass)
+    with value_checks():
+        check_geometry(means, normals, scales, opacities, None, viewmats, Ks)
+        check_range(near=near, far=far, lowpass=lowpass)
     return project_checked(means, normals, scales, opacities, viewmats, Ks, near=near, far=far, lowpass=lowpass,
                            backface_cull=backface_cull)
 

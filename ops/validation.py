@@ -9,11 +9,19 @@ and Python settings run as always (they are static while tracing), but the data-
 tensor *values* (NaN/Inf, signs and ranges, rigid viewmats, projection overflow, index and probability
 ranges) are skipped: they would force a graph break on every call. Run a compiled model's inputs through
 the op once eagerly to check them (docs/op.md "Using the op in other networks").
+
+Inside :func:`value_checks` the data-dependent checks (:func:`fail_if`) are collected and run together when the
+block ends, in one read back to the host per device: on a GPU a call synchronises once for all of them instead
+of once per check. The first failing check (in call order) raises; checks of types, shapes and settings still
+raise at once, so they win over a value check of an earlier argument.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import numbers
 import os
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -34,6 +42,48 @@ RIGID_TOL = {torch.float32: 1e-4, torch.float64: 1e-5}
 TINY_DET_F32 = 1e-20
 #: Device types the op runs on (the native CPU and CUDA backends; the dense oracle too).
 DEVICE_TYPES = ("cpu", "cuda")
+
+
+#: The pending value checks of the innermost :func:`value_checks` block (None: checks run at once).
+_PENDING: contextvars.ContextVar[list[tuple[torch.Tensor, Callable[[], str]]] | None] = contextvars.ContextVar(
+    "nsplat_pending_value_checks", default=None)
+
+
+def fail_if(condition: torch.Tensor, message: Callable[[], str]) -> None:
+    """Raise ``ValueError(message())`` when the 0-dim bool tensor ``condition`` is true: at once, or inside
+    :func:`value_checks` when its block ends (``message`` is called only on failure, so it may read values)."""
+    pending = _PENDING.get()
+    if pending is None:
+        if bool(condition):
+            raise ValueError(message())
+    else:
+        pending.append((condition, message))
+
+
+@contextlib.contextmanager
+def value_checks() -> Iterator[None]:
+    """Run the :func:`fail_if` checks of the block together at its end (one host read per device; nested blocks
+    join the outermost). The first failing check in call order raises."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[tuple[torch.Tensor, Callable[[], str]]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    finally:
+        _PENDING.reset(token)
+    by_device: dict[torch.device, list[int]] = {}
+    for i, (cond, _) in enumerate(pending):
+        by_device.setdefault(cond.device, []).append(i)
+    failed = [False] * len(pending)
+    for rows in by_device.values():
+        flags = torch.stack([pending[i][0].reshape(()) for i in rows]).cpu().tolist()  # the one host read
+        for i, f in zip(rows, flags):
+            failed[i] = bool(f)
+    for (_, message), f in zip(pending, failed):
+        if f:
+            raise ValueError(message())
 
 
 def values_checked() -> bool:
@@ -69,8 +119,8 @@ def _shape(name: str, t: torch.Tensor, expected: tuple[object, ...], text: str) 
 
 
 def _finite(name: str, t: torch.Tensor) -> None:
-    if values_checked() and t.numel() and not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name}: contains NaN or Inf")
+    if values_checked() and t.numel():
+        fail_if(~torch.isfinite(t).all(), lambda: f"{name}: contains NaN or Inf")
 
 
 def _int(name: str, v: object, lo: int) -> int:
@@ -142,21 +192,16 @@ def _check_geometry_values(N: int, normals: torch.Tensor, scales: torch.Tensor, 
                            viewmats: torch.Tensor, Ks: torch.Tensor, dtype: torch.dtype, device: torch.device) -> None:
     """The data-dependent checks of :func:`check_geometry` (eager only, see :func:`values_checked`)."""
     if N:
-        if bool((normals.norm(dim=-1) == 0).any()):
-            raise ValueError("normals: every normal must have non-zero length")
-        if bool((scales <= 0).any()):
-            raise ValueError("scales: expected values > 0 (world-unit tangent standard deviations)")
-        if bool(((opacities < 0) | (opacities > 1)).any()):
-            raise ValueError("opacities: expected values in [0, 1]")
+        fail_if((normals.norm(dim=-1) == 0).any(), lambda: "normals: every normal must have non-zero length")
+        fail_if((scales <= 0).any(), lambda: "scales: expected values > 0 (world-unit tangent standard deviations)")
+        fail_if(((opacities < 0) | (opacities > 1)).any(), lambda: "opacities: expected values in [0, 1]")
     last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
-    if not bool((viewmats[:, 3, :] == last).all()):
-        raise ValueError("viewmats: expected world-to-camera matrices with last row [0, 0, 0, 1]")
-    if not bool((Ks[:, 2, :] == last[1:]).all()):
-        raise ValueError("Ks: expected intrinsics with last row [0, 0, 1]")
-    if bool((Ks[:, 1, 0] != 0).any()):
-        raise ValueError("Ks: expected K[1, 0] == 0 (upper-triangular intrinsics)")
-    if bool(((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any()):
-        raise ValueError("Ks: expected focal lengths fx = K[0,0] > 0 and fy = K[1,1] > 0")
+    fail_if((viewmats[:, 3, :] != last).any(),
+            lambda: "viewmats: expected world-to-camera matrices with last row [0, 0, 0, 1]")
+    fail_if((Ks[:, 2, :] != last[1:]).any(), lambda: "Ks: expected intrinsics with last row [0, 0, 1]")
+    fail_if((Ks[:, 1, 0] != 0).any(), lambda: "Ks: expected K[1, 0] == 0 (upper-triangular intrinsics)")
+    fail_if(((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any(),
+            lambda: "Ks: expected focal lengths fx = K[0,0] > 0 and fy = K[1,1] > 0")
     check_rigid(viewmats)
 
 
@@ -171,11 +216,13 @@ def check_rigid(viewmats: torch.Tensor) -> None:
     dev = (G - s2[:, None, None] * eye).abs().amax(dim=(1, 2)) / torch.where(s2 > 0, s2, torch.ones_like(s2))
     tol = RIGID_TOL[R.dtype]
     bad = (s2 <= 0) | ~(dev <= tol)
-    if bool(bad.any()):
+    def message() -> str:
         b = int(torch.nonzero(bad)[0, 0])
-        raise ValueError(f"viewmats: camera {b}: the 3x3 part is not a rotation times a uniform scale "
-                         f"(|R Rᵀ - s² I| / s² = {float(dev[b]):.3g} > {tol:g}); shear and non-uniform scale "
-                         f"are not supported (normals would be transformed wrongly)")
+        return (f"viewmats: camera {b}: the 3x3 part is not a rotation times a uniform scale "
+                f"(|R Rᵀ - s² I| / s² = {float(dev[b]):.3g} > {tol:g}); shear and non-uniform scale "
+                f"are not supported (normals would be transformed wrongly)")
+
+    fail_if(bad.any(), message)
 
 
 def check_range(*, near, far, lowpass) -> None:
@@ -234,8 +281,8 @@ def check_sampling(*, samples, eps, estimator, seed, hermite_order, hermite_tol,
                             f"{seed.dtype} {list(seed.shape)}")
         if seed.dim() == 1 and cameras is not None and seed.shape[0] != cameras:
             raise ValueError(f"seed: one seed per camera expected, got {seed.shape[0]} seeds for {cameras} cameras")
-        if values_checked() and seed.numel() and not bool((seed >= 0).all()):
-            raise ValueError(f"seed: expected values in [0, 2**63), got {seed.min().item()}")
+        if values_checked() and seed.numel():
+            fail_if((seed < 0).any(), lambda: f"seed: expected values in [0, 2**63), got {seed.min().item()}")
     else:
         _int("seed", seed, 0)
         if int(seed) >= 2**63:
@@ -345,8 +392,8 @@ def check_projected(proj, Ks: torch.Tensor) -> tuple[int, int]:
         _finite(f"proj.{name}", t)
     if tuple(proj.valid.shape) != (B, N):
         raise ValueError(f"proj.valid: expected shape {[B, N]}, got {list(proj.valid.shape)}")
-    if values_checked() and (bool((proj.amps < 0).any()) or bool((proj.sigma2 < 0).any())):
-        raise ValueError("proj.amps, proj.sigma2: expected values >= 0")
+    if values_checked():
+        fail_if((proj.amps < 0).any() | (proj.sigma2 < 0).any(), lambda: "proj.amps, proj.sigma2: expected values >= 0")
     _tensor("Ks", Ks)
     if Ks.device != amps.device:
         raise ValueError(f"Ks: expected device {amps.device} (the device of proj), got {Ks.device}")
@@ -390,18 +437,19 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
     if indices.shape[0] != B or min(indices.shape[1:]) < 1:
         raise ValueError(f"indices: expected shape [B,H,W,m] with B={B} (the cameras of proj) and H, W, m >= 1, "
                          f"got {list(indices.shape)}")
-    if values_checked() and indices.numel() and bool(((indices < -1) | (indices >= N)).any()):
-        raise ValueError(f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} points), got "
-                         f"[{int(indices.min())}, {int(indices.max())}]")
+    if values_checked() and indices.numel():
+        fail_if(((indices < -1) | (indices >= N)).any(),
+                lambda: f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} points), got "
+                        f"[{int(indices.min())}, {int(indices.max())}]")
     p = _tensor("probs", probs)
     if p.dtype != dtype or p.device != device or p.shape != indices.shape:
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {dtype} on {device}, "
                          f"got {list(p.shape)} {p.dtype} on {p.device}")
     _finite("probs", p)
-    if values_checked() and (bool(((p <= 0) & (indices >= 0)).any()) or bool((p > 1).any())
-                             or bool((p < 0).any())):
-        raise ValueError("probs: expected inclusion probabilities in (0, 1] for filled slots and in [0, 1] for "
-                         "empty ones")
+    if values_checked():
+        fail_if(((p <= 0) & (indices >= 0)).any() | (p > 1).any() | (p < 0).any(),
+                lambda: "probs: expected inclusion probabilities in (0, 1] for filled slots and in [0, 1] for "
+                        "empty ones")
     if background is not None:
         _tensor("background", background)
         if background.dtype != dtype or background.device != device:
@@ -424,16 +472,22 @@ def check_projection_numerics(*, huge: torch.Tensor, tiny: torch.Tensor, dtype: 
     * float32 with ``lowpass < 1e-12``: a tiny splat (σ ≲ 10⁻⁵ px) has NaN/Inf gradients; raised only when the
       projection is differentiated.
     """
-    if bool(huge.any()):
+    def too_large() -> str:
         b, idx = _points(huge)
-        raise ValueError(f"scales: points {idx} (camera {b}) project to splats too large or too far off-screen "
-                         f"for {dtype} (the screen covariance or centre overflows) and would be dropped "
-                         f"silently; use float64, smaller scales, or cull them with near/far")
-    if differentiable and dtype == torch.float32 and lowpass < 1e-12 and bool(tiny.any()):
+        return (f"scales: points {idx} (camera {b}) project to splats too large or too far off-screen "
+                f"for {dtype} (the screen covariance or centre overflows) and would be dropped "
+                f"silently; use float64, smaller scales, or cull them with near/far")
+
+    def too_small() -> str:
         b, idx = _points(tiny)
-        raise ValueError(f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
-                         f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
-                         f"lowpass >= 1e-12 or float64")
+        return (f"scales: points {idx} (camera {b}) are smaller than ~1e-5 px on screen with "
+                f"lowpass={lowpass:g} (< 1e-12) in float32: their gradients would be NaN/Inf; use "
+                f"lowpass >= 1e-12 or float64")
+
+    with value_checks():
+        fail_if(huge.any(), too_large)
+        if differentiable and dtype == torch.float32 and lowpass < 1e-12:
+            fail_if(tiny.any(), too_small)
 
 
 def _points(mask: torch.Tensor, limit: int = 10) -> tuple[int, list[int]]:

@@ -21,6 +21,7 @@ each device in float64.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -330,6 +331,35 @@ def test_slot_offsets_beyond_2_31():
     _check_large_m(CUDA, W, H, m_big, with_backward)
     if not with_backward:
         pytest.skip(f"forward checked; backward needs ~90 GB of free GPU memory, {free / 1e9:.0f} GB free")
+
+
+@cuda_test
+def test_cuda_step_reads_back_four_times_whatever_the_views():
+    """A step (splat forward of B views in one call, L1, backward) reads back to the host four times, for 1 and
+    for 6 views (torch.cuda.set_sync_debug_mode counts every read): the input value checks together, the
+    projection's float-hazard checks together (ops/validation.py value_checks), and the sampler's two size reads
+    (the trees' valid counts; the tile item offsets and coefficient totals). Nothing else synchronises."""
+    sc = make_scene(3000, 8, dtype=torch.float32, scale=(0.01, 0.05))
+    ps = [sc[n].to(CUDA).requires_grad_() for n in PARAMS]
+
+    def syncs(B: int) -> list[str]:
+        V, K = (t.to(CUDA) for t in make_cameras(B, 48, 40, dtype=torch.float32))
+        target = torch.rand(B, 40, 48, 3, device=CUDA)
+        seed = torch.arange(B) + 7  # per-camera seeds on the host, as the fitter passes them
+        torch.cuda.synchronize()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                out = splat(*ps, V, K, 48, 40, samples=16, seed=seed)
+                (out.image - target).abs().mean().backward()
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        return [f"{w.filename}:{w.lineno}: {w.message}" for w in caught if "synchroniz" in str(w.message)]
+
+    for B in (1, 6):
+        found = syncs(B)
+        assert len(found) == 4, "\n".join(found)
 
 
 # --------------------------------------------------------------------------------------------------------

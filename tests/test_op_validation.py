@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import nsplat.ops.library as library
 from nsplat.ops import splat, splat_dense
+from nsplat.ops.validation import fail_if, value_checks
 from tests.conftest import make_cameras, make_scene
 
 
@@ -88,3 +90,67 @@ def test_mixed_devices_are_rejected(no_native):
     args["features"] = args["features"].to("meta")
     with pytest.raises(ValueError, match="^features:.*device"):
         splat(**args)
+
+
+# ------------------------------------------------------------------------- value checks in one host read
+class _ScalarReads(TorchDispatchMode):
+    """Counts the reads of one tensor value back to the host (``bool(t)``, ``t.item()``: on a GPU each one is a
+    synchronisation)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001
+        self.count += func is torch.ops.aten._local_scalar_dense.default
+        return func(*args, **(kwargs or {}))
+
+
+def test_splat_value_checks_read_no_scalar_per_check():
+    """splat's data-dependent checks (finite values, ranges, rigid viewmats, per-camera seeds, the projection's
+    float hazards) are read back together (validation.value_checks), not one scalar per check as before (17 such
+    reads in this call); nothing in the forward or the backward reads a scalar."""
+    sc = make_scene(300, 1, C=3)
+    V, K = make_cameras(2, 16, 12)
+    ps = [sc[n].requires_grad_() for n in ("means", "normals", "scales", "opacities", "features")]
+    with _ScalarReads() as reads:
+        out = splat(*ps, V, K, 16, 12, samples=8, seed=torch.tensor([1, 2]))
+        out.image.sum().backward()
+    assert reads.count == 0
+
+
+def test_value_checks_raise_the_first_failure_in_call_order_when_the_block_ends():
+    built = []
+    reached_end = False
+    with pytest.raises(ValueError, match="^first$"):
+        with value_checks():
+            fail_if(torch.tensor(False), lambda: built.append("passing") or "never")
+            fail_if(torch.tensor(True), lambda: "first")
+            fail_if(torch.tensor([True]).any(), lambda: "second")
+            reached_end = True
+    assert reached_end and built == []  # deferred to the end; a passing check's message is never built
+    with value_checks():
+        fail_if(torch.tensor(False), lambda: "never")
+    with pytest.raises(ValueError, match="^now$"):  # outside a block: at once
+        fail_if(torch.tensor(True), lambda: "now")
+
+
+def test_nested_value_checks_join_the_outermost():
+    with pytest.raises(ValueError, match="^inner$"):
+        with value_checks():
+            with value_checks():
+                fail_if(torch.tensor(True), lambda: "inner")
+            fail_if(torch.tensor(True), lambda: "outer")
+
+
+def test_several_bad_values_name_the_first_argument(no_native):
+    kw = _good()
+    kw["means"] = _nan(kw["means"])
+    kw["scales"] = -kw["scales"]
+    with pytest.raises(ValueError, match="^means: contains NaN or Inf$"):
+        splat(**kw, samples=4)
+    kw = _good()
+    kw["scales"] = -kw["scales"]
+    kw["viewmats"] = kw["viewmats"] * torch.tensor([1.0, 2.0, 1.0, 1.0])[:, None]
+    with pytest.raises(ValueError, match="^scales: expected values > 0"):
+        splat(**kw, samples=4)

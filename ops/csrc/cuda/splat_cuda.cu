@@ -1,7 +1,8 @@
 // CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
-//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists, then one
+//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists (two reads of
+//                                   sizes back to the host per call, whatever the cameras), then one
 //                                   or more threads per pixel (lanes, tile.h), a tile's pixels on consecutive
 //                                   threads; with several lanes a merge kernel, one thread per pixel
 //   composite_forward_cuda          one thread per (camera, pixel)
@@ -14,6 +15,7 @@
 // Memory: the per-pixel heap lives in global memory (the `indices` output plus a double key scratch of
 // pixels x samples per camera; with L lanes per pixel, L heaps of (double, int) entries, their LaneStats and one
 // merged key scratch), so `samples` is limited by memory only; all slot offsets are 64-bit. The
+// cameras' trees of a call are alive together (a few hundred bytes per point and camera); the
 // tile items take sizeof(TileItem) (120 B) each, twice while they are arranged; the near items' per-pixel bins
 // one byte per (item, tile pixel), at most kBinScratchBytes per sampling launch.
 //
@@ -198,21 +200,21 @@ struct CudaTree {
   }
 };
 
-// Builds camera b's tree: the CPU builder's steps, each a kernel (or a cub primitive) over its elements.
-// Two host syncs: the number of valid points and the total coefficient count (to size the arrays).
+// Camera b's tree is built in three phases, so that a call over B cameras reads sizes back to the host twice
+// in all (sample_cuda), not per camera: the CPU builder's steps, each a kernel (or a cub primitive) over its
+// elements.
+//
+// Phase 1: the box and count of the valid means (the count written to *count on the device), their Morton keys
+// and the keys' radix sort.
 template <typename S>
-void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* sig2, int64_t N, int order, double tol,
-                const at::TensorOptions& dev, Stream stream) {
-  T.n = 0;
+void tree_keys(CudaTree& T, const S* mu, const S* amp, const S* sig2, int64_t N, int64_t* count,
+               const at::TensorOptions& dev, Stream stream) {
   if (N == 0) return;
   const auto dbl = dev.dtype(at::kDouble);
   const auto i64 = dev.dtype(at::kLong);
-  const auto i32 = dev.dtype(at::kInt);
-
-  // 1. box of the valid means and their count.
   const int64_t parts = std::min<int64_t>(kReduceBlocks, blocks_for(N, kThreads));
   at::Tensor part_box = at::empty({parts * kThreads, 4}, dbl), part_cnt = at::empty({parts * kThreads}, i64);
-  at::Tensor box = at::empty({4}, dbl), count = at::empty({1}, i64);
+  at::Tensor box = at::empty({4}, dbl);
   NS_LAUNCH(box_partial_kernel<S>, static_cast<unsigned int>(parts), kThreads, stream, mu, amp, N,
             part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
@@ -222,22 +224,29 @@ void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* s
             mid_cnt.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
   NS_LAUNCH(box_fold_kernel, 1, 32, stream, mid_box.data_ptr<double>(), mid_cnt.data_ptr<int64_t>(), kThreads, 1,
-            box.data_ptr<double>(), count.data_ptr<int64_t>());
+            box.data_ptr<double>(), count);
   NS_LAUNCH_CHECK();
-
-  // 2. keys and their radix sort (all 64 bits; invalid points sort last).
+  // keys and their radix sort (all 64 bits; invalid points sort last)
   at::Tensor raw = at::empty({N}, i64);
   T.keys = at::empty({N}, i64);
   NS_LAUNCH(morton_kernel<S>, blocks_for(N, kThreads), kThreads, stream, mu, amp, sig2, N, box.data_ptr<double>(),
             as<uint64_t>(raw));
   NS_LAUNCH_CHECK();
   sort_keys(as<uint64_t>(raw), as<uint64_t>(T.keys), N, dev, stream);
-  const int64_t n = count.item<int64_t>();  // synchronises
+}
+
+// Phase 2, with the valid count n known on the host: sorted double copies, internal nodes, bottom-up
+// aggregates, expansion orders and the coefficient offsets (their total stays on the device, at
+// T.herm_off[n - 1]).
+template <typename S>
+void tree_nodes(CudaTree& T, int64_t n, const S* mu, const S* con, const S* amp, const S* sig2, int order, double tol,
+                const at::TensorOptions& dev, Stream stream) {
   T.n = n;
   if (n == 0) return;
+  const auto dbl = dev.dtype(at::kDouble);
+  const auto i64 = dev.dtype(at::kLong);
+  const auto i32 = dev.dtype(at::kInt);
   const uint64_t* keys = as<uint64_t>(T.keys);
-
-  // 3. sorted double copies.
   T.id = at::empty({n}, i32);
   T.mu = at::empty({n, 2}, dbl);
   T.con = at::empty({n, 3}, dbl);
@@ -249,8 +258,6 @@ void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* s
             T.logA.data_ptr<double>(), T.sig2.data_ptr<double>());
   NS_LAUNCH_CHECK();
   if (n == 1) return;
-
-  // 4. internal nodes, bottom-up aggregates, expansion orders.
   const int64_t ni = n - 1;
   T.nodes = bytes(ni * static_cast<int64_t>(sizeof(InternalNode)), dev);
   T.agg = bytes(ni * static_cast<int64_t>(sizeof(NodeAgg)), dev);
@@ -270,14 +277,15 @@ void build_tree(CudaTree& T, const S* mu, const S* con, const S* amp, const S* s
             as<NodeAgg>(T.agg), tol, order, T.herm_p.data_ptr<int>(), T.herm_err.data_ptr<double>(),
             sq.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-
-  // 5. coefficient offsets: exclusive scan of p^2.
   T.herm_off = at::empty({ni + 1}, i64);
   exclusive_sum(sq.data_ptr<int64_t>(), T.herm_off.data_ptr<int64_t>(), ni + 1, dev, stream);
-  const int64_t total = T.herm_off[ni].item<int64_t>();  // synchronises
+}
 
-  // 6. expansion coefficients.
-  T.herm_coef = at::zeros({std::max<int64_t>(total, 1)}, dbl);
+// Phase 3, with the coefficient total known on the host: the expansion coefficients.
+inline void tree_coefficients(CudaTree& T, int64_t total, const at::TensorOptions& dev, Stream stream) {
+  if (T.n <= 1) return;
+  const int64_t ni = T.n - 1;
+  T.herm_coef = at::zeros({std::max<int64_t>(total, 1)}, dev.dtype(at::kDouble));
   NS_LAUNCH(coefficients_kernel, blocks_for(ni, kThreads), kThreads, stream, ni, as<InternalNode>(T.nodes),
             as<NodeAgg>(T.agg), T.herm_p.data_ptr<int>(), T.herm_off.data_ptr<int64_t>(), T.mu.data_ptr<double>(),
             T.amp.data_ptr<double>(), T.herm_coef.data_ptr<double>());
@@ -615,72 +623,91 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
   const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
   const int64_t* st = streams.data_ptr<int64_t>();  // (seed, camera) of each camera, on the host
+  const auto i64 = opts.dtype(at::kLong);
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
     using S = scalar_t;
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
+    const auto cam = [&](const at::Tensor& t, int64_t b, int64_t c) { return t.data_ptr<S>() + b * N * c; };
+    // Every camera's tree and tile lists, with two reads of sizes back to the host for the whole call: the valid
+    // counts, then each camera's tile item offsets (tiles + 1) and coefficient total (one row of `sizes`).
+    std::vector<CudaTree> trees(B);
+    at::Tensor counts = at::zeros({B}, i64);
+    for (int64_t b = 0; b < B; ++b)
+      tree_keys<S>(trees[b], cam(mu, b, 2), cam(amp, b, 1), cam(sig2, b, 1), N, counts.data_ptr<int64_t>() + b, opts,
+                   stream);
+    const at::Tensor counts_host = counts.to(at::kCPU);  // synchronises (1 of 2)
+    at::Tensor sizes = at::zeros({B, tiles + 2}, i64);
+    std::vector<at::Tensor> metrics(B), near_counts(B);
     for (int64_t b = 0; b < B; ++b) {
-      CudaTree tree;
-      build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
-                    sig2.data_ptr<S>() + b * N, N, static_cast<int>(order), tol, opts, stream);
+      CudaTree& tree = trees[b];
+      tree_nodes<S>(tree, counts_host.data_ptr<int64_t>()[b], cam(mu, b, 2), cam(con, b, 3), cam(amp, b, 1),
+                    cam(sig2, b, 1), static_cast<int>(order), tol, opts, stream);
       TreeView tv = tree.view();
-      at::Tensor metric = bytes(std::max<int64_t>(tv.n - 1, 1) * static_cast<int64_t>(sizeof(ItemMetric)), opts);
+      metrics[b] = bytes(std::max<int64_t>(tv.n - 1, 1) * static_cast<int64_t>(sizeof(ItemMetric)), opts);
       if (tv.n > 1) {
-        NS_LAUNCH(group_metric_kernel, blocks_for(tv.n - 1, kThreads), kThreads, stream, tv, as<ItemMetric>(metric));
+        NS_LAUNCH(group_metric_kernel, blocks_for(tv.n - 1, kThreads), kThreads, stream, tv, as<ItemMetric>(metrics[b]));
         NS_LAUNCH_CHECK();
+        sizes[b][tiles + 1].copy_(tree.herm_off[tv.n - 1]);  // device to device
       }
-      tv.metric = as<ItemMetric>(metric);
-      // tile item lists: counts, exclusive scan (one trailing zero: the last offset is the total), items
-      at::Tensor counts = at::zeros({tiles + 1}, opts.dtype(at::kLong));
-      at::Tensor offsets = at::empty({tiles + 1}, opts.dtype(at::kLong));
+      // tile item counts and their exclusive scan (one trailing zero: the last offset is the total)
+      at::Tensor tile_counts = at::zeros({tiles + 1}, i64);
       NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                log_theta, log_far, counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
+                log_theta, log_far, tile_counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
       NS_LAUNCH_CHECK();
-      exclusive_sum(counts.data_ptr<int64_t>(), offsets.data_ptr<int64_t>(), tiles + 1, opts, stream);
-      const at::Tensor offsets_host = offsets.to(at::kCPU);  // synchronises
-      const int64_t* off_h = offsets_host.data_ptr<int64_t>();
+      exclusive_sum(tile_counts.data_ptr<int64_t>(), sizes.data_ptr<int64_t>() + b * (tiles + 2), tiles + 1, opts,
+                    stream);
+    }
+    const at::Tensor sizes_host = sizes.to(at::kCPU);  // synchronises (2 of 2)
+    for (int64_t b = 0; b < B; ++b) {
+      CudaTree& tree = trees[b];
+      const int64_t* off_h = sizes_host.data_ptr<int64_t>() + b * (tiles + 2);
+      int64_t* offsets = sizes.data_ptr<int64_t>() + b * (tiles + 2);
+      tree_coefficients(tree, off_h[tiles + 1], opts, stream);
+      TreeView tv = tree.view();
+      tv.metric = as<ItemMetric>(metrics[b]);
       const int64_t n_items = off_h[tiles];
       at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-      at::Tensor near_counts = at::empty({tiles}, opts.dtype(at::kInt));
+      near_counts[b] = at::empty({tiles}, opts.dtype(at::kInt));
       {
         at::Tensor raw = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
         NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                  log_theta, log_far, nullptr, offsets.data_ptr<int64_t>(), as<TileItem>(raw), as<TileItem>(items),
-                  near_counts.data_ptr<int>());
+                  log_theta, log_far, nullptr, offsets, as<TileItem>(raw), as<TileItem>(items),
+                  near_counts[b].data_ptr<int>());
         NS_LAUNCH_CHECK();
       }
       // pixel pass in chunks of whole tiles whose bin bytes fit in kBinScratchBytes (a tile larger than that
       // is a chunk of its own)
       const int64_t chunk_items = std::max<int64_t>(kBinScratchBytes / kTilePixels, 1);
       at::Tensor bin8 = bytes(std::min(n_items, chunk_items) * kTilePixels, opts);
+      const SplatsView<S> sv = base.camera(b);
+      const double* Kb = Kd.data_ptr<double>() + b * 9;
+      const uint64_t seed = static_cast<uint64_t>(st[2 * b]);
+      int* idx = indices.data_ptr<int>() + b * P * m;
+      S* prob = probs.data_ptr<S>() + b * P * m;
+      S* tot = total.data_ptr<S>() + b * P;
+      int* wk = work.data_ptr<int>() + b * P;
       for (int64_t t0 = 0; t0 < tiles;) {
         int64_t t1 = t0 + 1;
         while (t1 < tiles && off_h[t1 + 1] - off_h[t0] <= chunk_items) ++t1;
         if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
-        const SplatsView<S> sv = base.camera(b);
-        const double* Kb = Kd.data_ptr<double>() + b * 9;
-        const uint64_t seed = static_cast<uint64_t>(st[2 * b]);
-        int* idx = indices.data_ptr<int>() + b * P * m;
-        S* prob = probs.data_ptr<S>() + b * P * m;
-        S* tot = total.data_ptr<S>() + b * P;
-        int* wk = work.data_ptr<int>() + b * P;
         NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads, stream,
             tv, sv, Kb, width, height, static_cast<int>(m), lanes == 1 ? log_eps : lane_log_eps, lanes, seed,
-            st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets.data_ptr<int64_t>(),
-            near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
+            st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets,
+            near_counts[b].data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
             lanes > 1 ? lane_idx.data_ptr<int>() : nullptr, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, idx,
             prob, tot, wk);
         NS_LAUNCH_CHECK();
         if (lanes > 1) {
           NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
               tv, sv, Kb, width, height, static_cast<int>(m), lane_log_eps, lanes, seed, st[2 * b + 1],
-              static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets.data_ptr<int64_t>(),
-              near_counts.data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
-              lane_idx.data_ptr<int>(), as<LaneStats>(lane_stats), merged.data_ptr<double>(), idx, prob, tot, wk);
+              static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets, near_counts[b].data_ptr<int>(),
+              tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(), lane_idx.data_ptr<int>(),
+              as<LaneStats>(lane_stats), merged.data_ptr<double>(), idx, prob, tot, wk);
           NS_LAUNCH_CHECK();
         }
         t0 = t1;
       }
-      // The tree's tensors go back to the caching allocator here, in stream order.
+      trees[b] = CudaTree();  // its tensors go back to the caching allocator here, in stream order
     }
   });
   return {indices, probs, total, work};
