@@ -23,7 +23,8 @@ from .output import SplatOutput
 from .projection import Projected, project, project_checked
 from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_allocation, check_backface_cull,
                          check_composite_call, check_deterministic, check_devices, check_geometry, check_sample_call,
-                         check_sampling, check_settings, inclusion_for, native_estimator, value_checks)
+                         check_sampling, check_settings, inclusion_for, native_estimator)
+from .value_checks import value_checks
 
 _PROJECTED_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
 _LOW_PRECISION = (torch.float16, torch.bfloat16)

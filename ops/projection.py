@@ -21,8 +21,8 @@ import torch
 
 from .fixed_order import expand_fixed
 from .library import project_op
-from .validation import (TINY_DET_F32, check_geometry, check_projection_numerics, check_range, value_checks,
-                         values_checked)
+from .validation import TINY_DET_F32, check_geometry, check_projection_numerics, check_range, values_checked
+from .value_checks import value_checks
 
 ALPHA_MAX = 0.99
 #: A ray whose cosine with a splat's plane normal is below this uses the splat's centre depth.

@@ -10,20 +10,16 @@ tensor *values* (NaN/Inf, signs and ranges, rigid viewmats, projection overflow,
 ranges) are skipped: they would force a graph break on every call. Run a compiled model's inputs through
 the op once eagerly to check them (docs/op.md "Using the op in other networks").
 
-Inside :func:`value_checks` the data-dependent checks (:func:`fail_if`) are collected and run together when the
-block ends, in one read back to the host per device: on a GPU a call synchronises once for all of them instead
-of once per check. The first failing check (in call order) raises; checks of types, shapes and settings still
-raise at once, so they win over a value check of an earlier argument.
+The data-dependent checks go through ``ops/value_checks.py`` (run together, in one read back to the host).
 """
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import numbers
 import os
-from collections.abc import Callable, Iterator
 
 import torch
+
+from .value_checks import fail_if, value_checks
 
 #: Gradient estimators (docs/op.md "Estimators"): "ht" Horvitz–Thompson with the priority-sampling
 #: threshold probabilities (exactly unbiased in additive mode), "ht-pips" Horvitz–Thompson with the πps
@@ -42,48 +38,6 @@ RIGID_TOL = {torch.float32: 1e-4, torch.float64: 1e-5}
 TINY_DET_F32 = 1e-20
 #: Device types the op runs on (the native CPU and CUDA backends; the dense oracle too).
 DEVICE_TYPES = ("cpu", "cuda")
-
-
-#: The pending value checks of the innermost :func:`value_checks` block (None: checks run at once).
-_PENDING: contextvars.ContextVar[list[tuple[torch.Tensor, Callable[[], str]]] | None] = contextvars.ContextVar(
-    "nsplat_pending_value_checks", default=None)
-
-
-def fail_if(condition: torch.Tensor, message: Callable[[], str]) -> None:
-    """Raise ``ValueError(message())`` when the 0-dim bool tensor ``condition`` is true: at once, or inside
-    :func:`value_checks` when its block ends (``message`` is called only on failure, so it may read values)."""
-    pending = _PENDING.get()
-    if pending is None:
-        if bool(condition):
-            raise ValueError(message())
-    else:
-        pending.append((condition, message))
-
-
-@contextlib.contextmanager
-def value_checks() -> Iterator[None]:
-    """Run the :func:`fail_if` checks of the block together at its end (one host read per device; nested blocks
-    join the outermost). The first failing check in call order raises."""
-    if _PENDING.get() is not None:
-        yield
-        return
-    pending: list[tuple[torch.Tensor, Callable[[], str]]] = []
-    token = _PENDING.set(pending)
-    try:
-        yield
-    finally:
-        _PENDING.reset(token)
-    by_device: dict[torch.device, list[int]] = {}
-    for i, (cond, _) in enumerate(pending):
-        by_device.setdefault(cond.device, []).append(i)
-    failed = [False] * len(pending)
-    for rows in by_device.values():
-        flags = torch.stack([pending[i][0].reshape(()) for i in rows]).cpu().tolist()  # the one host read
-        for i, f in zip(rows, flags):
-            failed[i] = bool(f)
-    for (_, message), f in zip(pending, failed):
-        if f:
-            raise ValueError(message())
 
 
 def values_checked() -> bool:

@@ -337,7 +337,7 @@ def test_slot_offsets_beyond_2_31():
 def test_cuda_step_reads_back_four_times_whatever_the_views():
     """A step (splat forward of B views in one call, L1, backward) reads back to the host four times, for 1 and
     for 6 views (torch.cuda.set_sync_debug_mode counts every read): the input value checks together, the
-    projection's float-hazard checks together (ops/validation.py value_checks), and the sampler's two size reads
+    projection's float-hazard checks together (ops/value_checks.py), and the sampler's two size reads
     (the trees' valid counts; the tile item offsets and coefficient totals). Nothing else synchronises."""
     sc = make_scene(3000, 8, dtype=torch.float32, scale=(0.01, 0.05))
     ps = [sc[n].to(CUDA).requires_grad_() for n in PARAMS]

@@ -7,7 +7,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 import nsplat.ops.library as library
 from nsplat.ops import splat, splat_dense
-from nsplat.ops.validation import fail_if, value_checks
+from nsplat.ops.value_checks import fail_if, value_checks
 from tests.conftest import make_cameras, make_scene
 
 
@@ -108,7 +108,7 @@ class _ScalarReads(TorchDispatchMode):
 
 def test_splat_value_checks_read_no_scalar_per_check():
     """splat's data-dependent checks (finite values, ranges, rigid viewmats, per-camera seeds, the projection's
-    float hazards) are read back together (validation.value_checks), not one scalar per check as before (17 such
+    float hazards) are read back together (ops/value_checks.py), not one scalar per check as before (17 such
     reads in this call); nothing in the forward or the backward reads a scalar."""
     sc = make_scene(300, 1, C=3)
     V, K = make_cameras(2, 16, 12)
