@@ -31,10 +31,15 @@ def fail_if(condition: torch.Tensor, message: Callable[[], str]) -> None:
         pending.append((condition, message))
 
 
-@contextlib.contextmanager
-def value_checks() -> Iterator[None]:
+def value_checks() -> contextlib.AbstractContextManager[None]:
     """Run the :func:`fail_if` checks of the block together at its end (one host read per device; nested blocks
-    join the outermost). The first failing check in call order raises."""
+    join the outermost). The first failing check in call order raises. While ``torch.compile`` traces (the
+    value checks are skipped then, ``ops/validation.py``) it is a null context."""
+    return contextlib.nullcontext() if torch.compiler.is_compiling() else _collected()
+
+
+@contextlib.contextmanager
+def _collected() -> Iterator[None]:
     if _PENDING.get() is not None:
         yield
         return
