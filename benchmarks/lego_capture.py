@@ -182,6 +182,21 @@ def result(root: Path, run: Path, ran: dict) -> dict:
     return row
 
 
+def table(rows: dict[str, dict], count: int) -> str:
+    """The Markdown table of ``rows`` (name -> row of :func:`result`) of a capture of ``count`` photos."""
+    return markdown(["run", "registered / photos", "SfM points", "exit", "stage 1 val / test PSNR", "end val PSNR",
+                    "test PSNR", "train wall / CPU s", "measured at"],
+                    [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
+                     max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
+                     f"{r['stage1']['val']['psnr']['mean']:.2f} / {r['stage1']['test']['psnr']['mean']:.2f}"
+                     if "stage1" in r else "-",
+                     f"{r['stage2_history']['history'][-1]['val_psnr']:.2f}" if "stage2_history" in r else "-",
+                     f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
+                     f"{r['wall_s']:.0f} / {r['cpu_s']:.0f}" if r.get("cpu_s") else
+                     f"{r['wall_s']:.0f} / -" if r.get("wall_s") else "-",
+                     f"{r['measured']['commit'][:7]} {r['measured']['date'][:16]}"] for k, r in rows.items()])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--source", type=Path, default=LEGO)
@@ -232,19 +247,9 @@ def main() -> None:
             frames[name]["cameras_max_diff_vs_unmoved"] = float((cams[name] - cams[name.split("-sim")[0]]).abs().max())
     before = read_result("lego_capture") or {}
     rows, frames = {**before.get("runs", {}), **rows}, {**before.get("frames", {}), **frames}
-    table = markdown(["run", "registered / photos", "SfM points", "exit", "stage 1 val / test PSNR", "end val PSNR",
-                      "test PSNR", "train wall / CPU s", "measured at"],
-                     [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
-                       max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
-                       f"{r['stage1']['val']['psnr']['mean']:.2f} / {r['stage1']['test']['psnr']['mean']:.2f}"
-                       if "stage1" in r else "-",
-                       f"{r['stage2_history']['history'][-1]['val_psnr']:.2f}" if "stage2_history" in r else "-",
-                       f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
-                       f"{r['wall_s']:.0f} / {r['cpu_s']:.0f}" if r.get("cpu_s") else
-                       f"{r['wall_s']:.0f} / -" if r.get("wall_s") else "-",
-                       f"{r['measured']['commit'][:7]} {r['measured']['date'][:16]}"] for k, r in rows.items()])
+    table_md = table(rows, count)
     write_result("lego_capture", {"photos": count, "features": feats, "runs": rows, "frames": frames,
-                                  "markdown": table}, table)
+                                  "markdown": table_md}, table_md)
 
 
 if __name__ == "__main__":
