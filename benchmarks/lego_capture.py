@@ -15,11 +15,13 @@ frame must not depend on the world frame SfM picked.
     python -m benchmarks.lego_capture --seeds 3 --sfm-only           # one more SfM run, no training
     python -m benchmarks.lego_capture --seeds 0 1 2 --similarity --report   # tabulate the finished runs only
     python -m benchmarks.lego_capture --seeds 1 --train-seed 1       # train seed 1's SfM output again, seed=1
+    python -m benchmarks.lego_capture --seeds 2 --tag steps1000 --set neural.steps=1000   # a config variant
 
 Merges its rows into ``benchmarks/results/lego_capture.json`` (per run: SfM registered images, points and time,
-the training frame's diagnosis, stage-1 and final test PSNR, wall and CPU seconds, and ``measured``: the commit,
-date, load average and command the row was measured with); rows of runs not made by this call are kept as
-they were, a row of the same name is replaced. Prints a Markdown table of every row.
+the training frame's diagnosis, stage-1 and final test PSNR, the val curves, wall and CPU seconds, any config
+overrides, and ``measured``: the commit, date, load average and command the row was measured with); rows of
+runs not made by this call are kept as they were, a row of the same name is replaced. Prints a Markdown table
+of every row.
 """
 from __future__ import annotations
 
@@ -123,14 +125,15 @@ def similar(root: Path, seed: int) -> Path:
     return out
 
 
-def train(root: Path, run: Path, seed: int = 0) -> dict:
-    """``configs/colmap.yaml`` at 100² on ``root`` with training ``seed``; returns ``run_config``'s record and the
-    exit status."""
+def train(root: Path, run: Path, seed: int = 0, overrides: list[str] = ()) -> dict:
+    """``configs/colmap.yaml`` at 100² on ``root`` with training ``seed`` and config ``overrides`` (``key=value``);
+    returns ``run_config``'s record and the exit status."""
     if (run / "eval_test" / "metrics.json").is_file():
         return {"skipped": True, "returncode": 0}
     try:
         return run_config(REPO / "configs" / "colmap.yaml", run,
-                          [f"data.root={root}", "data.capture.downscale=4", "log.progress=false", f"seed={seed}"])
+                          [f"data.root={root}", "data.capture.downscale=4", "log.progress=false", f"seed={seed}",
+                           *overrides])
     except RuntimeError as err:  # a run that stops with its message is a result too
         return {"returncode": 1, "error": str(err)}
 
@@ -164,18 +167,34 @@ def stamp() -> dict:
 
 
 def result(root: Path, run: Path, ran: dict) -> dict:
-    """One row: SfM record, the frame diagnosis, stage-1 and final test PSNR (absent when the run stopped), the
-    load before and after training and the :func:`stamp` it was measured at."""
+    """One row: SfM record, the frame diagnosis, stage-1 and final test PSNR and the stage-1 and stage-2 val curves
+    (absent when the run stopped), the load before and after training and the :func:`stamp` it was measured at."""
     row = {"root": str(root), "run": str(run), "sfm": json.loads((root / "sfm.json").read_text()),
            "returncode": ran.get("returncode"), "wall_s": ran.get("wall_s"), "cpu_s": ran.get("cpu_s"),
            "load_before": ran.get("load_before"), "load_after": ran.get("load_after"), "measured": stamp()}
     for name, key in (("frame", "capture_frame.json"), ("test", "eval_test/metrics.json"),
-                      ("stage1", "eval_geometry.json"), ("stage1_history", "geometry_history.json")):
+                      ("stage1", "eval_geometry.json"), ("stage1_history", "geometry_history.json"),
+                      ("stage2_history", "history.json")):
         if (run / key).is_file():
             row[name] = json.loads((run / key).read_text())
     if run.with_suffix(".log").is_file():
         row["log_tail"] = run.with_suffix(".log").read_text().splitlines()[-5:]
     return row
+
+
+def table(rows: dict[str, dict], count: int) -> str:
+    """The Markdown table of ``rows`` (name -> row of :func:`result`) of a capture of ``count`` photos."""
+    return markdown(["run", "registered / photos", "SfM points", "exit", "stage 1 val / test PSNR", "end val PSNR",
+                    "test PSNR", "train wall / CPU s", "measured at"],
+                    [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
+                     max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
+                     f"{r['stage1']['val']['psnr']['mean']:.2f} / {r['stage1']['test']['psnr']['mean']:.2f}"
+                     if "stage1" in r else "-",
+                     f"{r['stage2_history']['history'][-1]['val_psnr']:.2f}" if "stage2_history" in r else "-",
+                     f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
+                     f"{r['wall_s']:.0f} / {r['cpu_s']:.0f}" if r.get("cpu_s") else
+                     f"{r['wall_s']:.0f} / -" if r.get("wall_s") else "-",
+                     f"{r['measured']['commit'][:7]} {r['measured']['date'][:16]}"] for k, r in rows.items()])
 
 
 def main() -> None:
@@ -188,9 +207,14 @@ def main() -> None:
     ap.add_argument("--similarity", action="store_true", help="also train the first SfM run moved by a similarity")
     ap.add_argument("--train-seed", type=int, default=0,
                     help="training seed (`seed=`); runs with a seed other than 0 are named <SfM run>-train<seed>")
+    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="config overrides of a variant (select it on the val curve, not on test); needs --tag")
+    ap.add_argument("--tag", default="", help="variant name: its runs are named <SfM run>-<tag>")
     ap.add_argument("--sfm-only", action="store_true")
     ap.add_argument("--report", action="store_true", help="train nothing: tabulate the finished runs")
     args = ap.parse_args()
+    if args.set and not args.tag:
+        ap.error("--set needs --tag: a variant's rows must not replace the default config's")
     scene = args.cache / "lego_capture"
     count = photos(args.source, scene)
     feats = features(scene, args.threads)
@@ -201,7 +225,8 @@ def main() -> None:
         return
     rows = {}
     for root in roots:
-        name = root.name + (f"-train{args.train_seed}" if args.train_seed else "")
+        name = (root.name + (f"-{args.tag}" if args.tag else "")
+                + (f"-train{args.train_seed}" if args.train_seed else ""))
         run = args.runs / name
         if args.report:
             if (run / "capture_frame.json").is_file():
@@ -209,7 +234,9 @@ def main() -> None:
                 wall = (run / "finished.json").stat().st_mtime - (run / "config.yaml").stat().st_mtime if done else None
                 rows[name] = result(root, run, {"returncode": 0 if done else None, "wall_s": wall})
             continue
-        rows[name] = result(root, run, train(root, run, args.train_seed))
+        rows[name] = result(root, run, train(root, run, args.train_seed, args.set))
+        if args.set:
+            rows[name]["overrides"] = args.set
     frames, cams = {}, {}
     for root in sorted(scene.glob("sfm-*")):
         if (root / "sfm.json").is_file():
@@ -220,17 +247,9 @@ def main() -> None:
             frames[name]["cameras_max_diff_vs_unmoved"] = float((cams[name] - cams[name.split("-sim")[0]]).abs().max())
     before = read_result("lego_capture") or {}
     rows, frames = {**before.get("runs", {}), **rows}, {**before.get("frames", {}), **frames}
-    table = markdown(["run", "registered / photos", "SfM points", "exit", "stage 1 val / test PSNR", "test PSNR",
-                      "train wall / CPU s", "measured at"],
-                     [[k, f"{max(m['registered'] for m in r['sfm']['models'].values())} / {count}",
-                       max(m["points"] for m in r["sfm"]["models"].values()), r["returncode"],
-                       f"{r['stage1']['val']['psnr']['mean']:.2f} / {r['stage1']['test']['psnr']['mean']:.2f}"
-                       if "stage1" in r else "-", f"{r['test']['psnr']['mean']:.2f}" if "test" in r else "-",
-                       f"{r['wall_s']:.0f} / {r['cpu_s']:.0f}" if r.get("cpu_s") else
-                       f"{r['wall_s']:.0f} / -" if r.get("wall_s") else "-",
-                       f"{r['measured']['commit'][:7]} {r['measured']['date'][:16]}"] for k, r in rows.items()])
+    table_md = table(rows, count)
     write_result("lego_capture", {"photos": count, "features": feats, "runs": rows, "frames": frames,
-                                  "markdown": table}, table)
+                                  "markdown": table_md}, table_md)
 
 
 if __name__ == "__main__":
