@@ -348,6 +348,33 @@ __global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, in
 
 constexpr int kTilePixels = kTileSize * kTileSize;
 
+// One camera's pixel pass (sample_kernel, then merge_kernel with several lanes): its tree, splats, tile lists and
+// outputs. `log_eps` is the log of a lane's budget eps / lanes; `key` and `lane_idx` hold each pixel's heaps
+// (pixels x lanes x m; lane_idx and lane_stats only with several lanes).
+template <typename S>
+struct PixelPass {
+  TreeView tv;
+  SplatsView<S> sv;
+  const double* K;
+  int64_t width, height, tiles_x;
+  int m, lanes, inclusion;
+  double log_eps;
+  uint64_t seed;
+  int64_t camera;
+  bool stratified;
+  const TileItem* items;
+  const int64_t* offsets;
+  const int* near_counts;
+  uint8_t* bin8;
+  double* key;
+  int* lane_idx;
+  LaneStats* lane_stats;
+  int* idx;  // [pixels x m] outputs
+  S* prob;
+  S* total;  // [pixels]
+  int* work;
+};
+
 // Sampling of camera b over tiles [t0, t1), `lanes` threads per pixel (tile.h, "Lanes"): thread g takes tile
 // t0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the tile, so that the
 // 16 threads of a (tile, lane) read the same items (idle past the image's edge). Near-item bins go to `bin8`,
@@ -357,39 +384,34 @@ constexpr int kTilePixels = kTileSize * kTileSize;
 // lane_idx [pixels x lanes x m] and its LaneStats in lane_stats [pixels x lanes] for merge_kernel.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    sample_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
-                  double log_eps, int lanes, uint64_t seed, int64_t camera, int inclusion, bool stratified,
-                  const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
-                  const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
-                  uint8_t* __restrict__ bin8, double* __restrict__ key_scratch, int* __restrict__ lane_idx,
-                  LaneStats* __restrict__ lane_stats, int* __restrict__ idx_b, S* __restrict__ prob_b,
-                  S* __restrict__ total_b, int* __restrict__ work_b) {
+    sample_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
+  const int m = pp.m, lanes = pp.lanes;
   const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
   NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
     const int64_t t = t0 + g / per_tile;
     const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % tiles_x) * kTileSize + l % kTileSize, py = (t / tiles_x) * kTileSize + l / kTileSize;
-    if (px >= width || py >= height) continue;
-    const int64_t p = py * width + px;
+    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
+    if (px >= pp.width || py >= pp.height) continue;
+    const int64_t p = py * pp.width + px;
     const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    const Draw draw = pixel_draw(seed, camera, p, width, stratified);
-    const int n = static_cast<int>(offsets[t + 1] - offsets[t]);
-    uint8_t* bins = bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l;
+    const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
+    const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
+    uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
+    const TileItem* items = pp.items + pp.offsets[t];
     if (lanes == 1) {
-      int* idx = idx_b + p * m;
-      double* key = key_scratch + p * m;
-      const LaneStats ls = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps, kMinTotal,
-                                       0, 1, key, idx, bins, kTilePixels);
-      const Ray ray = pixel_ray(K, u, v);
-      finalize_pixel(sv, u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest, ls.px.exhaustive && ls.px.evaluated == ls.cnt,
-                     inclusion, key, idx, prob_b + p * m);
-      total_b[p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
-      work_b[p] = ls.px.evaluated;
+      int* idx = pp.idx + p * m;
+      double* key = pp.key + p * m;
+      const LaneStats ls = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal, 0, 1,
+                                       key, idx, bins, kTilePixels);
+      const Ray ray = pixel_ray(pp.K, u, v);
+      finalize_pixel(pp.sv, u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
+                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, key, idx, pp.prob + p * m);
+      pp.total[p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
+      pp.work[p] = ls.px.evaluated;
     } else {
       const int64_t o = p * lanes + lane;
-      lane_stats[o] = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps,
-                                  kMinTotal / lanes, lane, lanes, key_scratch + o * m, lane_idx + o * m, bins,
-                                  kTilePixels);
+      pp.lane_stats[o] = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
+                                     lane, lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
     }
   }
 }
@@ -401,40 +423,37 @@ __global__ void __launch_bounds__(kPixelThreads)
 // double scratch.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    merge_kernel(TreeView tv, SplatsView<S> sv, const double* __restrict__ K, int64_t width, int64_t height, int m,
-                 double log_eps, int lanes, uint64_t seed, int64_t camera, int inclusion, bool stratified,
-                 const TileItem* __restrict__ items, const int64_t* __restrict__ offsets,
-                 const int* __restrict__ near_counts, int64_t tiles_x, int64_t t0, int64_t t1,
-                 uint8_t* __restrict__ bin8, double* __restrict__ lane_key, int* __restrict__ lane_idx,
-                 LaneStats* __restrict__ lane_stats, double* __restrict__ merged, int* __restrict__ idx_b,
-                 S* __restrict__ prob_b, S* __restrict__ total_b, int* __restrict__ work_b) {
+    merge_kernel(PixelPass<S> pp, double* __restrict__ merged, int64_t t0, int64_t t1) {
+  const int m = pp.m, lanes = pp.lanes;
+  const double* lane_key = pp.key;
+  const int* lane_idx = pp.lane_idx;
   NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
     const int64_t t = t0 + g / kTilePixels;
     const int l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % tiles_x) * kTileSize + l % kTileSize, py = (t / tiles_x) * kTileSize + l / kTileSize;
-    if (px >= width || py >= height) continue;
-    const int64_t p = py * width + px;
+    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
+    if (px >= pp.width || py >= pp.height) continue;
+    const int64_t p = py * pp.width + px;
     const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    LaneStats* ls = lane_stats + p * lanes;
+    LaneStats* ls = pp.lane_stats + p * lanes;
     double bound = 0.0;
     for (int j = 0; j < lanes; ++j) bound += ls[j].bound;
     double* key = merged + p * m;
-    int* idx = idx_b + p * m;
-    const Ray ray = pixel_ray(K, u, v);
+    int* idx = pp.idx + p * m;
+    const Ray ray = pixel_ray(pp.K, u, v);
     int cnt = 0, evaluated = 0;
     double total = 0.0, rest = INFINITY;
     bool exhaustive = true;
     if (bound >= kMinTotal) {
-      const Draw draw = pixel_draw(seed, camera, p, width, stratified);
-      const int n = static_cast<int>(offsets[t + 1] - offsets[t]);
-      uint8_t* bins = bin8 + (offsets[t] - offsets[t0]) * kTilePixels + l;
+      const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
+      const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
+      uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
       int at[kMaxPixelLanes];
       for (int j = 0; j < lanes; ++j) {
         const int64_t o = p * lanes + j;
         if (ls[j].floored)
-          ls[j] = sample_lane(tv, items + offsets[t], n, near_counts[t], u, v, draw, m, log_eps, 0.0, j, lanes,
-                              lane_key + o * m, lane_idx + o * m, bins, kTilePixels);
-        heap_sort(lane_key + o * m, lane_idx + o * m, ls[j].cnt);
+          ls[j] = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, m, pp.log_eps, 0.0, j,
+                              lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
+        heap_sort(pp.key + o * m, pp.lane_idx + o * m, ls[j].cnt);
         at[j] = 0;
         total += ls[j].px.total;
         evaluated += ls[j].px.evaluated;
@@ -464,10 +483,10 @@ __global__ void __launch_bounds__(kPixelThreads)
     } else {
       for (int j = 0; j < lanes; ++j) evaluated += ls[j].px.evaluated;
     }
-    finalize_pixel(sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, inclusion, key, idx,
-                   prob_b + p * m);
-    total_b[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
-    work_b[p] = evaluated;
+    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion, key, idx,
+                   pp.prob + p * m);
+    pp.total[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
+    pp.work[p] = evaluated;
   }
 }
 
@@ -679,30 +698,23 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       // is a chunk of its own)
       const int64_t chunk_items = std::max<int64_t>(kBinScratchBytes / kTilePixels, 1);
       at::Tensor bin8 = bytes(std::min(n_items, chunk_items) * kTilePixels, opts);
-      const SplatsView<S> sv = base.camera(b);
-      const double* Kb = Kd.data_ptr<double>() + b * 9;
-      const uint64_t seed = static_cast<uint64_t>(st[2 * b]);
-      int* idx = indices.data_ptr<int>() + b * P * m;
-      S* prob = probs.data_ptr<S>() + b * P * m;
-      S* tot = total.data_ptr<S>() + b * P;
-      int* wk = work.data_ptr<int>() + b * P;
+      PixelPass<S> pass{tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, tiles_x, static_cast<int>(m),
+                        lanes, static_cast<int>(inclusion), lane_log_eps, static_cast<uint64_t>(st[2 * b]),
+                        st[2 * b + 1], stratified, as<TileItem>(items), offsets, near_counts[b].data_ptr<int>(),
+                        nullptr, key_scratch.data_ptr<double>(), lanes > 1 ? lane_idx.data_ptr<int>() : nullptr,
+                        lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, indices.data_ptr<int>() + b * P * m,
+                        probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P};
       for (int64_t t0 = 0; t0 < tiles;) {
         int64_t t1 = t0 + 1;
         while (t1 < tiles && off_h[t1 + 1] - off_h[t0] <= chunk_items) ++t1;
         if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
+        pass.bin8 = as<uint8_t>(bin8);
         NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads, stream,
-            tv, sv, Kb, width, height, static_cast<int>(m), lanes == 1 ? log_eps : lane_log_eps, lanes, seed,
-            st[2 * b + 1], static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets,
-            near_counts[b].data_ptr<int>(), tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(),
-            lanes > 1 ? lane_idx.data_ptr<int>() : nullptr, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, idx,
-            prob, tot, wk);
+                  pass, t0, t1);
         NS_LAUNCH_CHECK();
         if (lanes > 1) {
-          NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
-              tv, sv, Kb, width, height, static_cast<int>(m), lane_log_eps, lanes, seed, st[2 * b + 1],
-              static_cast<int>(inclusion), stratified, as<TileItem>(items), offsets, near_counts[b].data_ptr<int>(),
-              tiles_x, t0, t1, as<uint8_t>(bin8), key_scratch.data_ptr<double>(), lane_idx.data_ptr<int>(),
-              as<LaneStats>(lane_stats), merged.data_ptr<double>(), idx, prob, tot, wk);
+          NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream, pass,
+                    merged.data_ptr<double>(), t0, t1);
           NS_LAUNCH_CHECK();
         }
         t0 = t1;
