@@ -47,8 +47,10 @@ def _grow(start: int, every: int, stop: int, threshold: float, split: float, gro
 #: the 96³ hull (about 2400 surfels); lego's ``eN`` rows are the shipped point-only recipe at N epochs (the rate
 #: halves at 1/3 and 2/3, the tail anneals the last 1/6), ``gG-eN`` starts on the G³ hull and grows during the
 #: first half of the epochs up to the 160³ hull's point count (80 000), splitting the 30 % with the largest
-#: screen-space gradient per event; ``g128-clone-e24`` clones the 20 % with the largest gradient instead (same size,
-#: offset by half a std-dev), in the first third of the epochs (defined, not measured yet).
+#: screen-space gradient per event; ``g160-120k-e24`` grows the shipped 160³ hull itself by the main job's rule
+#: (split the 30 % with the largest gradient, up to 120 000 surfels, no pruning); ``g128-clone-e24`` clones the
+#: 20 % with the largest gradient instead (same size, offset by half a std-dev), in the first third of the epochs
+#: (defined, not measured yet).
 VARIANTS: dict[str, tuple[str, list[str]]] = {
     "shipped": ("default", []),
     "grow-4k": ("default", _grow(2, 2, 10, 0.0, 0.01, 0.3, 4000)),
@@ -62,6 +64,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
                          *_grow(2, 2, 12, 0.0, 0.0, 0.3, 80000, prune_weight=0.5)]),
     "g128-clone-e24": ("lego", ["geometry.grid=128", "geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4",
                                 *_grow(2, 2, 8, 0.0, 1.0, 0.2, 80000, prune_weight=0.5)]),
+    "g160-120k-e24": ("lego", ["geometry.optim.epochs=24", "geometry.optim.anneal_epochs=4",
+                               *_grow(2, 2, 12, 0.0, 0.01, 0.3, 120000)]),
 }
 
 

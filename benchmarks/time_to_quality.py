@@ -10,6 +10,7 @@ renders. ``--budgets`` reads every curve at those seconds (the equal-time compar
     python -m benchmarks.time_to_quality --scene default                      # every default-scene variant
     python -m benchmarks.time_to_quality --scene lego --variants point point-m64 --seeds 0 1
     python -m benchmarks.time_to_quality --scene default --report             # table + figure of finished runs
+    python -m benchmarks.time_to_quality --scene lego_400 --variants shipped   # lego at 400², up to an hour
 
 Runs go to ``runs/ttq/<scene>/<variant>-s<seed>`` (a finished run is not trained again); the table to stdout and
 ``benchmarks/results/time_to_quality-<scene>.json``, the figure to ``docs/images/neural/time_to_quality-<scene>.png``.
@@ -28,9 +29,11 @@ from matplotlib.figure import Figure
 
 from benchmarks.common import IMAGES, REPO, run_config, val_curve, write_result
 
-#: Scene → (neural config, point-only config, stage-1 / stage-2 validation cadences: dense enough for a curve).
+#: Scene → (neural config, point-only config or ``None``, stage-1 / stage-2 validation cadences: dense enough for
+#: a curve).
 SCENES = {"default": ("default.yaml", "splat_only.yaml", ["geometry.log.validate=100", "log.validate=100"]),
-          "lego": ("lego.yaml", "lego_splat_only.yaml", ["geometry.log.validate=360", "log.validate=125"])}
+          "lego": ("lego.yaml", "lego_splat_only.yaml", ["geometry.log.validate=360", "log.validate=125"]),
+          "lego_400": ("lego_400.yaml", None, ["geometry.log.validate=240", "log.validate=125"])}
 #: Variant → (which config of the scene: ``neural`` or ``point``, overrides of it). One change each.
 VARIANTS: dict[str, tuple[str, list[str]]] = {
     "shipped": ("neural", []),
@@ -51,7 +54,8 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
     "e120": ("neural", ["geometry.optim.epochs=120", "geometry.optim.anneal_epochs=20"]),
 }
 #: Budgets (seconds) at which the curves are read, per scene.
-BUDGETS = {"default": [60, 90, 120, 180], "lego": [300, 600, 900, 1200, 1500, 1800, 2100]}
+BUDGETS = {"default": [60, 90, 120, 180], "lego": [300, 600, 900, 1200, 1500, 1800, 2100],
+           "lego_400": [600, 1200, 1800, 2400, 3000, 3600]}
 
 
 def _read(path: Path) -> dict | None:
@@ -69,6 +73,8 @@ def train(scene: str, variant: str, seed: int) -> None:
         return
     neural, point, cadence = SCENES[scene]
     kind, overrides = VARIANTS[variant]
+    if kind == "point" and point is None:
+        raise SystemExit(f"--variants: {variant} trains the point-only config, and scene {scene} has none")
     ran = run_config(REPO / "configs" / (neural if kind == "neural" else point), run,
                      [f"seed={seed}", "log.progress=false", *cadence, *overrides])
     (run / "ttq.json").write_text(json.dumps(ran, indent=1))

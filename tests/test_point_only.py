@@ -146,6 +146,18 @@ def test_lego_point_only_config_is_lego_stage_one_on_half_the_schedule():
     assert again.geometry.optim.epochs == 0 and again.geometry.optim.anneal_epochs == lego.geometry.optim.anneal_epochs
 
 
+def test_lego_400_config_is_lego_at_full_resolution_on_half_the_schedule():
+    """configs/lego_400.yaml: configs/lego.yaml (its views, hull, surfels, U-Net) at the photos' native 400², with
+    stage 1 on lego_splat_only.yaml's 72-epoch schedule (a 400² view costs four 200² ones): the hour-long recipe
+    of the 400² time-to-quality curve (docs/results.md)."""
+    big = load_config(Config, read_yaml(REPO / "configs" / "lego_400.yaml"))
+    lego = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"))
+    point = load_config(Config, read_yaml(REPO / "configs" / "lego_splat_only.yaml"))
+    assert (big.data.resolution, lego.data.resolution) == (400, 200)
+    assert dataclasses.replace(big.data, resolution=200) == lego.data
+    assert big.geometry == point.geometry and big.neural == lego.neural and big.render == lego.render
+
+
 def test_random_start_draws_max_points_in_the_box(tmp_path):
     """``geometry.init: random`` draws ``max_points`` points in ``geometry.bbox`` instead of the hull's."""
     from nsplat.tasks.neural.data import load_views
