@@ -73,16 +73,17 @@ def test_what_a_derived_config_does_not_name_is_its_bases(name):
 
 
 def test_a_change_of_the_main_recipe_reaches_colmap(tmp_path):
-    """colmap.yaml trains the main job's recipe: change default.yaml's stage 2 and colmap.yaml follows."""
+    """colmap.yaml trains the main job's recipe: change default.yaml's stage 2 and colmap.yaml follows (all but
+    the stage-2 length, which colmap.yaml names: 1000 steps, selected on the lego capture's val curves)."""
     folder = tmp_path / "configs"
     shutil.copytree(CONFIGS, folder)
     before = _resolved(folder / "colmap.yaml")
     default = yaml_load((folder / "default.yaml").read_text())
-    default["neural"]["steps"] = 123
+    default["neural"]["batch"] = 3
     default["neural"]["unet"]["width"] = 24
     default["render"]["lowpass"] = 0.7
     (folder / "default.yaml").write_text(yaml.safe_dump(default, sort_keys=False))
     after = _resolved(folder / "colmap.yaml")
-    assert (before["neural.steps"], before["neural.unet.width"]) == (500, 16)
-    assert (after["neural.steps"], after["neural.unet.width"], after["render.lowpass"]) == (123, 24, 0.7)
-    assert {k for k in after if after[k] != before[k]} == {"neural.steps", "neural.unet.width", "render.lowpass"}
+    assert (before["neural.batch"], before["neural.unet.width"], before["neural.steps"]) == (2, 16, 1000)
+    assert (after["neural.batch"], after["neural.unet.width"], after["render.lowpass"]) == (3, 24, 0.7)
+    assert {k for k in after if after[k] != before[k]} == {"neural.batch", "neural.unet.width", "render.lowpass"}
