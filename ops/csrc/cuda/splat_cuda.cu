@@ -380,8 +380,8 @@ struct PixelPass {
 // 16 threads of a (tile, lane) read the same items (idle past the image's edge). Near-item bins go to `bin8`,
 // the tile's pixels' bytes interleaved: item i of tile t, pixel l at bin8[(offsets[t] - offsets[t0] + i) *
 // kTilePixels + l] (item i belongs to lane i % lanes: each byte has one writer). With one lane the pixel is
-// finished here (`key` is a pixels x m double scratch); with several each lane leaves its heap in lane_key /
-// lane_idx [pixels x lanes x m] and its LaneStats in lane_stats [pixels x lanes] for merge_kernel.
+// finished here (its heap in pp.key); with several each lane leaves its heap in pp.key / pp.lane_idx
+// [pixels x lanes x m] and its LaneStats in pp.lane_stats [pixels x lanes] for merge_kernel.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
