@@ -10,8 +10,9 @@ of each tree, the ratio base / today per phase, for the sampler, for the rest of
     python train.py --config configs/lego_splat_only.yaml --run runs/lego_splat_only      # the surfels (~15 min)
     python -m benchmarks.step_ab                     # ~4 min (+ about two minutes to build the base once)
     python -m benchmarks.step_ab --rounds 1 --steps 5
+    python -m benchmarks.step_ab --base f2a997e --name step_ab-f2a997e    # against another commit, kept beside
 
-Writes ``benchmarks/results/step_ab.json``.
+Writes ``benchmarks/results/step_ab.json`` (or ``<--name>.json``).
 """
 from __future__ import annotations
 
@@ -70,6 +71,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--name", default="step_ab", help="the result's file name in benchmarks/results (no suffix)")
     args = ap.parse_args()
     ply = str(Path(args.ply).resolve())
     if not Path(ply).is_file():
@@ -91,7 +93,7 @@ def main() -> None:
     print(f"{ply}: {runs['today'][0]['points']} surfels, {args.threads} threads, {args.steps} steps x {args.rounds} "
           f"rounds (medians)")
     print(table)
-    write_result("step_ab", {"base": args.base, "ply": ply, "config": args.config, "points": runs["today"][0]["points"],
+    write_result(args.name, {"base": args.base, "ply": ply, "config": args.config, "points": runs["today"][0]["points"],
                              "steps": args.steps, "rounds": args.rounds, "threads": args.threads,
                              "ms": med, "speedup": {p: med["base"][p] / med["today"][p] for p in med["today"]},
                              "runs": runs}, table)

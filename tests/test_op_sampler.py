@@ -264,7 +264,7 @@ def _isas_this_cpu_runs() -> list[str]:
 def test_every_instruction_set_samples_the_same_bits(monkeypatch, dtype, m, eps, inclusion, stratified):
     """The CPU sampler's tile search is compiled for each instruction set (base, AVX2, AVX-512) and picked at run
     time; NSPLAT_CPU_SIMD forces one. Every set this CPU runs gives bitwise identical indices, π, Λ̂ and work
-    (independent IEEE lanes, no FMA contraction), on an image whose size is not a multiple of the 4x4 tile."""
+    (independent IEEE lanes, explicit fused multiply-adds only), on an image whose size is not a multiple of the 4x4 tile."""
     isas = _isas_this_cpu_runs()
     if platform.machine() in ("x86_64", "AMD64"):
         assert "base" in isas and "avx2" in isas, isas  # every x86-64 CPU the project supports has AVX2

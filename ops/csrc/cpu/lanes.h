@@ -18,9 +18,10 @@
 // (u >= hi 2^-32); candidates, a few per pixel once the heap is full, are settled exactly one by one with the
 // full-precision u. Far subtrees are searched depth first per lane (rare: their bound over the tile is tiny).
 //
-// The per-lane arithmetic is the same IEEE double operations on every instruction set (the build disables
-// contraction into FMA), so the samples, probabilities and totals are bitwise identical whatever the vector
-// width (tests/test_op_sampler.py).
+// The per-lane arithmetic is the same IEEE double operations on every instruction set (the build disables the
+// compiler's contraction into FMA; the kernel's quadratic form and the exponential's polynomial use explicit
+// fused multiply-adds, vfma: hardware on AVX2 and AVX-512, the correctly rounded std::fma on the base set), so
+// the samples, probabilities and totals are bitwise identical whatever the vector width (tests/test_op_sampler.py).
 #if !defined(NS_LANE_SEARCH) || !defined(NS_LANE_ISA)
 #error "lanes.h is included by lanes_<isa>.cpp, which define NS_LANE_SEARCH and NS_LANE_ISA"
 #endif
@@ -67,6 +68,22 @@ inline VD vsqrt(VD x) {
 #else
   VD r;
   for (int j = 0; j < kW; ++j) r[j] = sqrt(x[j]);
+  return r;
+#endif
+}
+
+// a * b + c rounded once (fused multiply-add; the base instruction set calls the correctly rounded std::fma, so
+// every instruction set computes the same bits).
+inline VD vfma(VD a, VD b, VD c) {
+#if NS_LANE_ISA == 3
+  return reinterpret_cast<VD>(_mm512_fmadd_pd(reinterpret_cast<__m512d>(a), reinterpret_cast<__m512d>(b),
+                                              reinterpret_cast<__m512d>(c)));
+#elif NS_LANE_ISA == 2
+  return reinterpret_cast<VD>(_mm256_fmadd_pd(reinterpret_cast<__m256d>(a), reinterpret_cast<__m256d>(b),
+                                              reinterpret_cast<__m256d>(c)));
+#else
+  VD r;
+  for (int j = 0; j < kW; ++j) r[j] = std::fma(a[j], b[j], c[j]);
   return r;
 #endif
 }
@@ -125,11 +142,11 @@ inline VD exp2_sixteenths(VL j) {  // kExp2Sixteenths[j] per lane
 }
 
 inline VD lane_exp(VD x) {
-  const VD kd = x * kExp16 + kExpShift;
+  const VD kd = vfma(x, bcast(kExp16), bcast(kExpShift));
   const VD n = kd - kExpShift;
   const VD r = (x - n * kLn2Hi) - n * kLn2Lo;
   VD p = bcast(kInvFact[7]);
-  for (int k = 6; k >= 0; --k) p = p * r + kInvFact[k];
+  for (int k = 6; k >= 0; --k) p = vfma(p, r, bcast(kInvFact[k]));
   const VQ bits = reinterpret_cast<VQ>(kd);
   const VD scale = reinterpret_cast<VD>((bits >> 4) << 52);
   const VD y = (exp2_sixteenths(reinterpret_cast<VL>(bits & 15)) * scale) * p;
@@ -137,11 +154,11 @@ inline VD lane_exp(VD x) {
 }
 
 inline double lane_exp1(double x) {
-  const double kd = x * kExp16 + kExpShift;
+  const double kd = std::fma(x, kExp16, kExpShift);
   const double n = kd - kExpShift;
   const double r = (x - n * kLn2Hi) - n * kLn2Lo;
   double p = kInvFact[7];
-  for (int k = 6; k >= 0; --k) p = p * r + kInvFact[k];
+  for (int k = 6; k >= 0; --k) p = std::fma(p, r, kInvFact[k]);
   uint64_t bits;
   std::memcpy(&bits, &kd, sizeof bits);
   const uint64_t sbits = (bits >> 4) << 52;
@@ -200,6 +217,7 @@ struct Tile {
   VL top[kC];          // threshold bin (window index; -1 while the lane has at most m entries)
   VL below[kC];        // entries in bins below `top`
   VL base[kC];         // absolute bin of window index 0
+  VL low[kC];          // lowest window index counted since the histogram was last cleared (kHistBins: none)
 };
 
 inline double& lane(VD* v, int l) { return reinterpret_cast<double*>(v)[l]; }
@@ -246,12 +264,12 @@ inline void scatter_h(int32_t* base, VL idx, VL v, VL mask) {
 }
 
 // Candidate buffers. A lane appends every candidate whose key is below its threshold; the threshold is the upper
-// edge of a histogram bin at or above the one that holds the lane's (m+1)-th smallest key so far (bins of 1/8
+// edge of a histogram bin at or above the one that holds the lane's (m+1)-th smallest key so far (bins of 1/4
 // octave: a key's bin is its bit pattern >> kHistShift; lowered to that bin once kWalkSlack more entries lie
 // below it), so it bounds that key from above and only decreases.
 // The histogram covers a window of kHistBins bins below the lane's first threshold (smaller keys count in bin 0).
 // A full buffer drops the entries above the threshold; the exact sample and xi_(m+1) are selected at the end.
-constexpr int kHistShift = 49;
+constexpr int kHistShift = 50;
 constexpr int kMaxRankSort = 128;  // samples up to this size are ordered by rank counting (vectorised)
 
 inline int64_t key_bin(double key) {
@@ -275,15 +293,30 @@ inline int window_bin(int64_t base, double key) {
 inline LaneEntry* lane_entries(const LaneScratch& s, int l) { return s.entries + static_cast<int64_t>(l) * s.cap; }
 inline int32_t* lane_hist(const LaneScratch& s, int l) { return s.hist + static_cast<int64_t>(l) * kHistBins; }
 
-// Builds lane l's histogram from its first m + 1 entries: the threshold bin is the bin of their largest key.
+// A lane's histogram is all zero when its tile starts and when its threshold (re)starts: the counted bins are
+// cleared afterwards, from the lowest counted one (`low`) to the window's top, rather than the whole window
+// before (a lane's keys span a few octaves of the window's 128).
+inline void clear_hist(Tile& t, const LaneScratch& s, int l) {
+  int64_t& low = lane(t.low, l);
+  if (low < kHistBins) std::memset(lane_hist(s, l) + low, 0, sizeof(int32_t) * (kHistBins - low));
+  low = kHistBins;
+}
+
+// Builds lane l's histogram (all zero) from its first m + 1 entries: the threshold bin is the bin of their
+// largest key.
 inline void start_threshold(Tile& t, const LaneScratch& s, int m, int l) {
   const LaneEntry* e = lane_entries(s, l);
   double top = e[0].key;
   for (int i = 1; i <= m; ++i) top = dmax(top, e[i].key);
   int32_t* h = lane_hist(s, l);
-  for (int i = 0; i < kHistBins; ++i) h[i] = 0;
   const int64_t base = key_bin(top) - (kHistBins - 1);
-  for (int i = 0; i <= m; ++i) ++h[window_bin(base, e[i].key)];
+  int64_t low = kHistBins;
+  for (int i = 0; i <= m; ++i) {
+    const int b = window_bin(base, e[i].key);
+    ++h[b];
+    low = b < low ? b : low;
+  }
+  lane(t.low, l) = low;
   lane(t.base, l) = base;
   lane(t.top, l) = kHistBins - 1;
   lane(t.below, l) = m + 1 - h[kHistBins - 1];
@@ -297,6 +330,7 @@ inline void rebase(Tile& t, const LaneScratch& s, int m, int l) {
     return key_less(a.key, a.id, b.key, b.id);
   });
   lane(t.cnt, l) = m + 1;
+  clear_hist(t, s, l);
   start_threshold(t, s, m, l);
 }
 
@@ -369,6 +403,7 @@ inline void settle(Tile& t, const LaneScratch& s, int m, int l, int sp, int pid,
   if (lane(t.top, l) >= 0) {
     const int b = window_bin(lane(t.base, l), key);
     ++lane_hist(s, l)[b];
+    lane(t.low, l) = b < lane(t.low, l) ? b : lane(t.low, l);
     lane(t.below, l) += b < lane(t.top, l);
   }
   fix_lane(t, s, m, l);
@@ -421,8 +456,8 @@ inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int s
   for (int c = 0; c < kC; ++c) {
     if (!((t.active >> (c * kW)) & ((1u << kW) - 1))) continue;  // no lane of this vector is searching
     const VD dx = t.U[c] - mx, dy = t.V[c] - my;
-    const VD q = ca * dx * dx + cb * dx * dy + cc * dy * dy;
-    const VD lam = lane_exp(vmin(la - 0.5 * q, bcast(kLogAlphaMax)));
+    const VD q = vfma(ca * dx, dx, vfma(cb * dx, dy, cc * dy * dy));
+    const VD lam = lane_exp(vmin(vfma(q, bcast(-0.5), bcast(la)), bcast(kLogAlphaMax)));
     const VL act = t.act[c];
     t.vis[c] += act ? lam : bcast(0.0);
     t.evals[c] -= act;
@@ -456,6 +491,7 @@ inline void offer_lanes(Tile& t, const LaneJob& job, const LaneScratch& s, int s
       bin = bin < 0 ? VL{} : bin;
       const VL hidx = t.lane_id[c] * kHistBins + bin;
       scatter_h(s.hist, hidx, gather_h(s.hist, hidx, steady) + 1, steady);
+      t.low[c] = steady & (bin < t.low[c]) ? bin : t.low[c];
       t.below[c] -= steady & (bin < t.top[c]);
     }
     const VL after = in & ((t.top[c] < 0 ? t.cnt[c] == m + 1 : (t.below[c] > m + kWalkSlack) | (t.cnt[c] == s.cap / 2)));
@@ -469,8 +505,8 @@ inline void offer_lane(Tile& t, const LaneJob& job, const LaneScratch& s, int sp
   const TreeView& T = job.tree;
   const double u0 = lane(t.U, l), v0 = lane(t.V, l);
   const double dx = u0 - T.mu[2 * sp], dy = v0 - T.mu[2 * sp + 1];
-  const double q = T.con[3 * sp] * dx * dx + 2.0 * T.con[3 * sp + 1] * dx * dy + T.con[3 * sp + 2] * dy * dy;
-  const double t0 = T.logA[sp] - 0.5 * q;
+  const double q = std::fma(T.con[3 * sp] * dx, dx, std::fma(2.0 * T.con[3 * sp + 1] * dx, dy, T.con[3 * sp + 2] * dy * dy));
+  const double t0 = std::fma(q, -0.5, T.logA[sp]);
   const double lam = lane_exp1(t0 < kLogAlphaMax ? t0 : kLogAlphaMax);
   lane(t.vis, l) += lam;
   reinterpret_cast<int64_t*>(t.evals)[l] += 1;
@@ -651,6 +687,7 @@ void NS_LANE_SEARCH(const LaneJob& job, const TileItem* items, int n, int64_t x0
     lane(t.top, l) = -1;
     lane(t.below, l) = 0;
     lane(t.base, l) = 0;
+    lane(t.low, l) = kHistBins;
   }
   for (int c = 0; c < kC; ++c) {
     t.thr[c] = bcast(INFINITY);
@@ -740,6 +777,7 @@ void NS_LANE_SEARCH(const LaneJob& job, const TileItem* items, int n, int64_t x0
   for (int l = 0; l < kLanes; ++l) {
     if (!((in_image >> l) & 1)) continue;
     const double rest = select_sample(t, s, job.m, l);
+    clear_hist(t, s, l);
     const double total = lane(t.vis, l) + lane(t.est, l);
     const int cnt = total < kMinTotal ? 0 : static_cast<int>(lane(t.cnt, l) < job.m ? lane(t.cnt, l) : job.m);
     finish_lane(job, t, s, l, cnt, rest, total);

@@ -1,6 +1,7 @@
 // The CPU sampler's tile search, one pixel of a kTileSize x kTileSize tile per vector lane (lanes.h), compiled
 // once per instruction set (lanes_<isa>.cpp) and picked at run time (lanes_dispatch.cpp). Every instruction set
-// computes the same bits: lanes are independent IEEE double arithmetic without contraction.
+// computes the same bits: lanes are independent IEEE double arithmetic, fused multiply-adds only where written
+// (vfma), none contracted by the compiler. The AVX2 build needs FMA3 too (every AVX2 CPU but a few VIA ones).
 #pragma once
 #include <cstddef>
 
@@ -37,7 +38,7 @@ struct LaneEntry {
 static_assert(sizeof(LaneEntry) == 24 && offsetof(LaneEntry, id) == 16 && offsetof(LaneEntry, sorted) == 20,
               "lanes.h scatters a LaneEntry as three 64-bit words");
 
-constexpr int kHistBins = 1024;  // bins of a lane's threshold histogram (lanes.h): 128 octaves
+constexpr int kHistBins = 1024;  // bins of a lane's threshold histogram (lanes.h): 256 octaves
 
 // Per-thread scratch for a tile of n items and sample size m.
 struct LaneScratch {

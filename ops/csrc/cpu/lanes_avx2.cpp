@@ -9,7 +9,7 @@
 #include <immintrin.h>
 
 #pragma GCC push_options
-#pragma GCC target("avx2")
+#pragma GCC target("avx2,fma")
 #define NS_LANE_SEARCH lane_search_avx2
 #define NS_LANE_ISA 2
 #include "lanes.h"

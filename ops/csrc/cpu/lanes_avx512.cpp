@@ -9,7 +9,7 @@
 #include <immintrin.h>
 
 #pragma GCC push_options
-#pragma GCC target("avx2,avx512f,avx512dq,avx512vl,avx512bw")
+#pragma GCC target("avx2,fma,avx512f,avx512dq,avx512vl,avx512bw")
 #define NS_LANE_SEARCH lane_search_avx512
 #define NS_LANE_ISA 3
 #include "lanes.h"

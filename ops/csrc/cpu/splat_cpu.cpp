@@ -23,7 +23,8 @@ namespace {
 
 int num_threads() { return std::max(1, at::get_num_threads()); }
 
-// A camera's tree with its storage.
+// A camera's tree with its storage. The storage is kept from one tree to the next (a thread's trees reuse it:
+// sample_impl), so that a step's tree costs its writes, not fresh pages and their zero fill.
 struct CpuTree {
   std::vector<InternalNode> nodes;
   std::vector<NodeAgg> agg;
@@ -32,6 +33,10 @@ struct CpuTree {
   std::vector<double> herm_err, mu, con, logA, amp, sig2, nrm, off, zc;
   std::unique_ptr<double[]> herm_coef;                // filled on first use (lazy_hermite.h)
   std::unique_ptr<std::atomic<uint8_t>[]> herm_state;  // zero: none computed
+  std::vector<ItemMetric> metric;                     // of the nodes that tile_items can cut into groups
+  std::vector<int64_t> valid;                         // build scratch: indices of the valid points,
+  std::vector<uint64_t> keys, sort_tmp;               // their tree keys and the radix sort's buffer
+  int64_t coef_cap = 0, state_cap = 0;                // allocated sizes of herm_coef and herm_state
   int64_t n = 0;
 
   TreeView view() const {
@@ -52,11 +57,17 @@ struct CpuTree {
   }
 };
 
+// The calling thread's tree storage (OpenMP workers reach it through the reference, not the thread_local).
+CpuTree& thread_tree() {
+  static thread_local CpuTree tree;
+  return tree;
+}
+
 // Sorts the unique 64-bit tree keys (morton_key: code in the high word, original index in the low word; `keys` in
 // increasing index order) ascending: a stable LSD radix sort of the high words (11, 11 and 10 bits), which leaves
 // equal codes in index order, i.e. the order of the whole keys.
-void sort_keys(std::vector<uint64_t>& keys) {
-  std::vector<uint64_t> tmp(keys.size());
+void sort_keys(std::vector<uint64_t>& keys, std::vector<uint64_t>& tmp) {
+  tmp.resize(keys.size());
   const int shifts[3] = {32, 43, 54};
   for (int pass = 0; pass < 3; ++pass) {
     const int shift = shifts[pass];
@@ -73,7 +84,8 @@ void sort_keys(std::vector<uint64_t>& keys) {
 template <typename S>
 void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* sig2, const S* nrm, const S* off,
                 const S* zc, int64_t N, int order, double tol) {
-  std::vector<int64_t> valid;
+  std::vector<int64_t>& valid = T.valid;
+  valid.clear();
   valid.reserve(N);
   double lox = INFINITY, loy = INFINITY, hix = -INFINITY, hiy = -INFINITY;
   for (int64_t k = 0; k < N; ++k) {
@@ -89,14 +101,15 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
   if (n == 0) return;
   double ext = std::max(hix - lox, hiy - loy);
   double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
-  std::vector<uint64_t> keys(n);
+  std::vector<uint64_t>& keys = T.keys;
+  keys.resize(n);
   const int nt = num_threads();
 #pragma omp parallel for num_threads(nt) schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     int64_t k = valid[i];
     keys[i] = morton_key(double(mu[2 * k]), double(mu[2 * k + 1]), double(sig2[k]), lox, loy, inv_ext, k);
   }
-  sort_keys(keys);
+  sort_keys(keys, T.sort_tmp);
   T.id.resize(n);
   T.mu.resize(2 * n);
   T.con.resize(3 * n);
@@ -147,8 +160,15 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
     T.herm_off[i] = total;
     total += static_cast<int64_t>(T.herm_p[i]) * T.herm_p[i];
   }
-  T.herm_coef.reset(new double[std::max<int64_t>(total, 1)]);
-  T.herm_state.reset(new std::atomic<uint8_t>[ni]());
+  if (total > T.coef_cap) {
+    T.herm_coef.reset(new double[total]);
+    T.coef_cap = total;
+  }
+  if (ni > T.state_cap) {
+    T.herm_state.reset(new std::atomic<uint8_t>[ni]);
+    T.state_cap = ni;
+  }
+  for (int64_t i = 0; i < ni; ++i) T.herm_state[i].store(0, std::memory_order_relaxed);
 }
 
 template <typename S>
@@ -191,12 +211,13 @@ void sample_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& 
   for (int64_t b = 0; b < B; ++b) {
     const uint64_t seed = static_cast<uint64_t>(streams[2 * b]);
     const int64_t camera = streams[2 * b + 1];
-    CpuTree tree;
+    CpuTree& tree = thread_tree();
     build_tree<S>(tree, mu.data_ptr<S>() + b * N * 2, con.data_ptr<S>() + b * N * 3, amp.data_ptr<S>() + b * N,
                   sig2.data_ptr<S>() + b * N, nrm.data_ptr<S>() + b * N * 3, off.data_ptr<S>() + b * N,
                   zc.data_ptr<S>() + b * N, N, order, tol);
     TreeView tv = tree.view();
-    std::vector<ItemMetric> metric(std::max<int64_t>(tv.n - 1, 1));
+    std::vector<ItemMetric>& metric = tree.metric;
+    metric.resize(std::max<int64_t>(tv.n - 1, 1));
 #pragma omp parallel for num_threads(nt) schedule(static)
     for (int64_t i = 0; i < tv.n - 1; ++i) {  // the groups tile_items can cut: nodes of <= kGroupSize points
       const InternalNode& nd = tv.nodes[i];     // whose parent has more
