@@ -391,23 +391,19 @@ def check_composite_call(proj, features, Ks, indices, probs, background, composi
     if indices.shape[0] != B or min(indices.shape[1:]) < 1:
         raise ValueError(f"indices: expected shape [B,H,W,m] with B={B} (the cameras of proj) and H, W, m >= 1, "
                          f"got {list(indices.shape)}")
-    # the value checks of the sample read each [B,H,W,m] tensor in few passes (one min/max pass each): on the
-    # stage API they cost as much as the compositing itself
-    if values_checked() and indices.numel():
+    if values_checked() and indices.numel():  # few passes over [B,H,W,m]: they cost as much as the compositing
         lo, hi = torch.aminmax(indices)
-        fail_if((lo < -1) | (hi >= N),
-                lambda: f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} points), got "
-                        f"[{int(indices.min())}, {int(indices.max())}]")
+        fail_if((lo < -1) | (hi >= N), lambda: f"indices: expected values in [-1, {N}) (-1 = empty slot, N={N} "
+                f"points), got [{int(indices.min())}, {int(indices.max())}]")
     p = _tensor("probs", probs)
     if p.dtype != dtype or p.device != device or p.shape != indices.shape:
         raise ValueError(f"probs: expected shape {list(indices.shape)} and dtype {dtype} on {device}, "
                          f"got {list(p.shape)} {p.dtype} on {p.device}")
     if values_checked() and p.numel():
         lo, hi = torch.aminmax(p)  # NaN anywhere makes both NaN
-        fail_if(~(torch.isfinite(lo) & torch.isfinite(hi)), lambda: "probs: contains NaN or Inf")
-        fail_if((lo < 0) | (hi > 1) | (torch.where(indices >= 0, p, 1.0).amin() <= 0),
-                lambda: "probs: expected inclusion probabilities in (0, 1] for filled slots and in [0, 1] for "
-                        "empty ones")
+        fail_if(~(lo.isfinite() & hi.isfinite()), lambda: "probs: contains NaN or Inf")
+        fail_if((lo < 0) | (hi > 1) | (torch.where(indices >= 0, p, 1.0).amin() <= 0), lambda: "probs: expected "
+                "inclusion probabilities in (0, 1] for filled slots and in [0, 1] for empty ones")
     if background is not None:
         _tensor("background", background)
         if background.dtype != dtype or background.device != device:

@@ -406,8 +406,9 @@ std::vector<at::Tensor> composite_backward_pixels(at::Tensor mu, at::Tensor con,
   check_features(feat, amp);
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
   auto opts = mu.options();
-  at::Tensor dalpha = at::zeros({B, H, W, m}, opts);
-  at::Tensor wf = at::zeros({B, H, W, m}, opts);
+  // pass 1 writes the filled slots, the only ones pass 2 reads (its entries): no zero fill
+  at::Tensor dalpha = at::empty({B, H, W, m}, opts);
+  at::Tensor wf = at::empty({B, H, W, m}, opts);
   at::Tensor bgw = at::empty({B, H, W, 1}, opts);
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_composite_backward_pixels", [&] {
