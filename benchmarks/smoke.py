@@ -32,9 +32,10 @@ SMOKE: dict[str, list[str]] = {
     "tradeoff": ["--tiny"],
     "network_levers": ["--sizes", "64", "--reps", "1", "--compile-reps", "0"],
     "gpu_lego": ["--device", "cpu", "--quick"],
+    "gt_views": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
-NEEDS_DATA = {"tradeoff": "dss_pointclouds"}
+NEEDS_DATA = {"tradeoff": "dss_pointclouds", "gt_views": "dss_pointclouds"}
 #: Seconds one smoke command may take.
 TIMEOUT_S = 120
 

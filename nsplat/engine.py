@@ -176,7 +176,8 @@ class Engine:
                 the host only when logged (every ``log.every`` steps and the last), so a GPU step need not wait
                 for its own results; ``time/step_s`` is then the host's time per step.
             start: the first step (a resumed run's checkpoint step).
-            validate: ``f(done, writer) -> scalars`` every ``log.validate`` steps (logged too).
+            validate: ``f(done, writer) -> scalars`` every ``log.validate`` steps (logged too; the first two shown on
+                the progress bar).
             images: ``f(done, writer)`` every ``log.images`` steps (image summaries).
             view: builds the live viewer's model (the ``viewer=true`` hook, :mod:`nsplat.viewer.live`).
 
@@ -190,6 +191,7 @@ class Engine:
         bar = tqdm(total=self.steps, initial=start, desc=self.desc, dynamic_ncols=True,
                    disable=not (lg.progress and main))
         scalars: dict[str, float | torch.Tensor] = {}
+        shown: dict[str, str] = {}  # the bar's postfix: the last logged step's scalars and last validation
         try:
             for k in range(start, self.steps):
                 t0 = time.perf_counter()
@@ -201,7 +203,8 @@ class Engine:
                 logged = lg.due(lg.every, done, last)
                 if logged:  # between logs the step's tensors stay where they are: no device-to-host copy
                     scalars = host_scalars(scalars)
-                    bar.set_postfix({n: f"{v:.4g}" for n, v in list(scalars.items())[:3]})
+                    shown.update({n: f"{v:.4g}" for n, v in list(scalars.items())[:3]})
+                    bar.set_postfix(shown)
                 if not main:
                     continue
                 if view is not None:
@@ -211,8 +214,11 @@ class Engine:
                         writer.add_scalar(name, value, done)
                     writer.add_scalar("time/step_s", dt, done)
                 if validate is not None and lg.due(lg.validate, done, last):
-                    for name, value in validate(done, writer).items():
+                    checked = validate(done, writer)
+                    for name, value in checked.items():
                         writer.add_scalar(name, value, done)
+                    shown.update({n: f"{v:.4g}" for n, v in list(checked.items())[:2]})
+                    bar.set_postfix(shown)
                 if images is not None and lg.due(lg.images, done, last):
                     images(done, writer)
                 if last or lg.due(lg.checkpoint, done, last):

@@ -6,6 +6,7 @@ estimator is (docs/op.md §4).
 Public API:
     splat(...)          sampled EWA surface splatting (C++/OpenMP on CPU, CUDA on GPU)
     splat_dense(...)    exact dense oracle (pure PyTorch)
+    splat_tiled(...)    every splat within a tolerance of its peak, tiled (ground truth at sparse cost)
     Splatter            nn.Module holding the op's settings
     SplatSettings       the op's settings as one value (Splatter's, and the render gateway's)
     sample(...)         per-pixel SPS sample (indices, inclusion probabilities, Λ̂)
@@ -20,5 +21,6 @@ from .output import SplatOutput
 from .settings import SplatSettings
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
+from .tiled import splat_tiled
 
-__all__ = ["Splatter", "SplatSettings", "splat", "sample", "sampler_isa", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "ALPHA_MAX"]
+__all__ = ["Splatter", "SplatSettings", "splat", "sample", "sampler_isa", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "splat_tiled", "ALPHA_MAX"]

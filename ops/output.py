@@ -1,4 +1,4 @@
-"""The result object of :func:`nsplat.ops.splat` and :func:`nsplat.ops.splat_dense`."""
+"""The result object of :func:`nsplat.ops.splat`, :func:`nsplat.ops.splat_dense` and :func:`nsplat.ops.splat_tiled`."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,7 +15,8 @@ class SplatOutput:
         alpha: ``[B, H, W, 1]`` accumulated opacity ``1 - T_end`` (additive mode: ``Σ α/π``).
         depth: ``[B, H, W, 1]`` expected depth ``Σ w_k d_k`` (camera z of the ray–plane hit).
         total: ``[B, H, W, 1]`` total size measure ``Λ(x) = Σ_k λ_k(x)``: exact for the dense
-            renderer, the tree estimate ``Λ̂(x)`` for the sampled op (no gradient).
+            renderer, the tree estimate ``Λ̂(x)`` for the sampled op (no gradient); ``None`` for
+            :func:`nsplat.ops.splat_tiled`.
         indices: ``[B, H, W, samples]`` int32 point indices of the sample, front to back by
             per-pixel depth, ``-1`` for empty slots (``None`` for the dense renderer).
         probs: ``[B, H, W, samples]`` inclusion probabilities ``π_k(x)`` of the sampled points,
@@ -26,7 +27,7 @@ class SplatOutput:
     image: torch.Tensor
     alpha: torch.Tensor
     depth: torch.Tensor
-    total: torch.Tensor
+    total: torch.Tensor | None = None
     indices: torch.Tensor | None = None
     probs: torch.Tensor | None = None
     work: torch.Tensor | None = None

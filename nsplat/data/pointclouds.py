@@ -1,7 +1,11 @@
-"""The DSS shape-reconstruction point clouds (bunny, teapot, yoga1, yoga6) with normals, via plyfile.
+"""Point clouds for shape reconstruction, via plyfile: the DSS shapes (bunny, teapot, yoga1, yoga6) or any PLY.
 
-The files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat.data.paths.data_root`;
+The DSS files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat.data.paths.data_root`;
 ``nsplat data fetch dss`` downloads them there). Each is a PLY with a ``vertex`` element carrying ``x y z nx ny nz``.
+Any other PLY with ``x y z`` loads through :func:`load_shape`; where it has no normals they are estimated
+(:func:`estimate_normals`). Points are used in the file's own units: the cameras are placed relative to the
+cloud's bounding-box centre and enclosing radius, and the reconstruction metrics are reported both raw and
+divided by the ground truth's bounding-box diagonal (:mod:`nsplat.metrics`).
 """
 from __future__ import annotations
 
@@ -11,8 +15,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.spatial import cKDTree
 
 from nsplat.data.paths import data_root
+from nsplat.config import ConfigError
 from nsplat.errors import DataError
 
 #: Shape name → file name inside ``dss_pointclouds/``.
@@ -199,3 +207,68 @@ def load_dss_shape(name: str, root: str | Path | None = None, dtype: torch.dtype
     pc = read_oriented_ply(path, dtype=dtype)
     pc.name = name
     return pc
+
+
+def check_shape(shape: str) -> None:
+    """Raise :class:`~nsplat.config.ConfigError` unless ``shape`` is a DSS name or a path ending in ``.ply``."""
+    if not isinstance(shape, str) or not (shape in DSS_SHAPES or shape.lower().endswith(".ply")):
+        raise ConfigError(f"data.shape: expected one of {sorted(DSS_SHAPES)} or the path of a .ply file, "
+                          f"got {shape!r}")
+
+
+def estimate_normals(points: torch.Tensor, k: int = 12) -> torch.Tensor:
+    """Unit normals ``[N,3]`` of ``points [N,3]``, consistently oriented.
+
+    Each normal is the direction of least variance of the point's ``k`` nearest neighbours (PCA). Orientation is
+    propagated along a minimum spanning tree of the neighbour graph weighted by ``1 - |n_i · n_j|`` (Hoppe et al.
+    1992), starting from the point farthest from the centroid, whose normal is turned away from the centroid; each
+    connected component is seeded the same way. Thin parts closer than the neighbourhood size can still flip.
+    """
+    pts = points.detach().cpu().double().numpy()
+    n = pts.shape[0]
+    if n < 4:
+        raise DataError(f"points: estimating normals needs at least 4 points, got {n}")
+    k = min(k, n - 1)
+    _, nbr = cKDTree(pts).query(pts, k=k + 1)
+    local = pts[nbr] - pts[nbr].mean(axis=1, keepdims=True)            # [N,k+1,3]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    normals = vecs[:, :, 0]                                              # smallest eigenvalue's vector
+    rows = np.repeat(np.arange(n), k)
+    cols = nbr[:, 1:].reshape(-1)
+    weight = 1.0 - np.abs((normals[rows] * normals[cols]).sum(1)) + 1e-6
+    tree = minimum_spanning_tree(coo_matrix((weight, (rows, cols)), shape=(n, n)).tocsr())
+    tree = tree + tree.T
+    centre = pts.mean(0)
+    done = np.zeros(n, dtype=bool)
+    for seed in np.argsort(-np.linalg.norm(pts - centre, axis=1)):
+        if done[seed]:
+            continue
+        if normals[seed] @ (pts[seed] - centre) < 0:
+            normals[seed] = -normals[seed]
+        order, parent = breadth_first_order(tree, seed, directed=False)
+        for i in order[1:]:
+            if normals[i] @ normals[parent[i]] < 0:
+                normals[i] = -normals[i]
+        done[order] = True
+    return torch.as_tensor(normals, dtype=points.dtype)
+
+
+def load_shape(shape: str, root: str | Path | None = None, dtype: torch.dtype = torch.float32) -> PointCloud:
+    """The ground-truth cloud ``shape``: a DSS name (:func:`load_dss_shape`, from ``root``) or a PLY path
+    (:func:`read_point_ply`; normals from the file, else :func:`estimate_normals`).
+
+    Raises:
+        ConfigError: ``shape`` is neither. FileNotFoundError / DataError: a missing or bad file, named.
+    """
+    check_shape(shape)
+    if shape in DSS_SHAPES:
+        return load_dss_shape(shape, root, dtype=dtype)
+    cloud = read_point_ply(shape)
+    points = cloud.points.to(dtype)
+    if points.shape[0] < 4:
+        raise DataError(f"{shape}: a shape needs at least 4 points, got {points.shape[0]}")
+    extent = (points.max(0).values - points.min(0).values).norm()
+    if not float(extent) > 0:
+        raise DataError(f"{shape}: every point is at the same position")
+    normals = cloud.normals.to(dtype) if cloud.normals is not None else estimate_normals(points)
+    return PointCloud(points, normals, Path(shape).stem)

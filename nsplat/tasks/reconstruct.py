@@ -20,14 +20,14 @@ import torch
 from matplotlib.figure import Figure
 
 from nsplat import distributed, fitting
-from nsplat import render as gateway
 from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require, require_fields
-from nsplat.data.dss import DataConfig, cache_file, gt_views, view_cameras
-from nsplat.data.pointclouds import PointCloud, load_dss_shape
+from nsplat.data.dss import DataConfig, cached_views, gt_views, view_cameras
+from nsplat.data.pointclouds import PointCloud, load_shape
 from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
 from nsplat.fitting import FitConfig, fit
 from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
+from nsplat.ops import splat_tiled
 from nsplat.render import RenderConfig
 from nsplat.report import results
 from nsplat.runctx import RunContext
@@ -121,14 +121,14 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
     """Reconstruct ``cfg.data.shape``; writes ``metrics.json``, ``reconstruction.ply`` and PNG renders."""
     torch.manual_seed(ctx.seed)
     t0 = time.time()
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    pc = load_shape(cfg.data.shape, cfg.data.root or None)
     views = gt_views(pc, cfg.data, cfg.render, cfg.data.views).to(ctx.device)
     scene = init_scene(pc, cfg).to(ctx.device)
     init_metrics = point_cloud_distances(scene.means, pc.points)
 
     def validate(done: int, writer: Any) -> dict[str, float]:
-        m = point_cloud_distances(scene.means, pc.points)
-        return {f"shape/{k}": v for k, v in m.items() if k != "diagonal"}
+        m = point_cloud_distances(scene.means, pc.points)  # chamfer first: the progress bar shows it
+        return {f"shape/{k}": m[k] for k in ("chamfer", "hausdorff", "chamfer_sq", "hausdorff_sq")}
 
     scalars = fit(scene, views, cfg.optim, cfg.render, ctx.run_dir, log=cfg.log, seed=ctx.seed, resume=ctx.resume,
                   validate=validate, desc="reconstruct")
@@ -161,26 +161,26 @@ def restore(cfg: Config, ctx: RunContext) -> SurfelScene:
 
 
 def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) -> list[Path]:
-    """PNGs ``renders/view_<i>.png`` of ``cfg.renders`` held-out views: GT | reconstruction, both
-    rendered with the exact dense renderer; and ``renders/points.png``, a scatter plot of both clouds."""
+    """PNGs ``renders/view_<i>.png`` of ``cfg.renders`` held-out views: GT | reconstruction, both rendered with
+    :func:`nsplat.ops.splat_tiled` at ``data.gt_tol`` (the dense oracle's image to that tolerance); and
+    ``renders/points.png``, a scatter plot of both clouds."""
     if cfg.renders < 1:
         return []
     held = gt_views(pc, cfg.data, cfg.render, cfg.renders, heldout=True)
-    images, viewmats, Ks = held.images, held.viewmats, held.Ks
     folder = ctx.run_dir / "renders"
     folder.mkdir(parents=True, exist_ok=True)
-    dense = dataclasses.replace(cfg.render, renderer="dense")
-    paths = []
+    sc = scene.cpu()
     with torch.no_grad():
-        sc = scene.cpu()
-        shaded = lambert(sc.features, sc.normals, viewmats)
-        for b in range(cfg.renders):
-            rec = gateway.render(sc.means, sc.normals, sc.scales, sc.opacities, shaded[b], viewmats[b:b + 1], Ks[b:b + 1],
-                         cfg.data.width, cfg.data.height, dense).image[0]
-            pair = torch.cat([images[b], rec], 1).clamp(0, 1)
-            p = folder / f"view_{b}.png"
-            iio.imwrite(p, (pair.numpy() * 255).round().astype(np.uint8))
-            paths.append(p)
+        shaded = lambert(sc.features, sc.normals, held.viewmats)
+        rec = splat_tiled(sc.means, sc.normals, sc.scales, sc.opacities, shaded, held.viewmats, held.Ks, cfg.data.width,
+                          cfg.data.height, tol=cfg.data.gt_tol, near=cfg.render.near, far=cfg.render.far,
+                          lowpass=cfg.render.lowpass, backface_cull=cfg.render.backface_cull).image
+    paths = []
+    for b in range(cfg.renders):
+        pair = torch.cat([held.images[b], rec[b]], 1).clamp(0, 1)
+        p = folder / f"view_{b}.png"
+        iio.imwrite(p, (pair.numpy() * 255).round().astype(np.uint8))
+        paths.append(p)
     paths.append(write_point_plot(folder / "points.png", scene.means.detach().cpu(), pc))
     scene.to(ctx.device)
     return paths
@@ -217,7 +217,7 @@ def write_point_plot(path: Path, points: torch.Tensor, pc: PointCloud) -> Path:
 
 def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, float]:
     """Distances of the last checkpoint's points to the GT (``split`` is ignored: there is one GT)."""
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    pc = load_shape(cfg.data.shape, cfg.data.root or None)
     m = point_cloud_distances(restore(cfg, ctx).means.detach().cpu(), pc.points)
     results.info("%s", json.dumps(m, indent=2))
     return m
@@ -225,21 +225,17 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test") -> dict[str, flo
 
 def render(cfg: Config, ctx: RunContext) -> list[Path]:
     """Write the held-out PNG renders of the last checkpoint."""
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    pc = load_shape(cfg.data.shape, cfg.data.root or None)
     return write_renders(cfg, ctx, pc, restore(cfg, ctx))
 
 
 def view(cfg: Config, ctx: RunContext) -> ViewModel:
     """The task contract's ``view``: the last checkpoint's surfels (shaded as trained) with the training
     cameras; their GT images only if already rendered (never re-rendered for viewing)."""
-    pc = load_dss_shape(cfg.data.shape, cfg.data.root or None)
+    pc = load_shape(cfg.data.shape, cfg.data.root or None)
     scene = restore(cfg, ctx)
     V, K = view_cameras(cfg.data.views, pc, cfg.data)
-    cache = cache_file(cfg.data, cfg.render, "train")
-    images = None
-    if cache.is_file():
-        have = torch.load(cache, weights_only=True)
-        images = have[:cfg.data.views] if have.shape[0] >= cfg.data.views else None
+    images = cached_views(cfg.data, cfg.render, cfg.data.views)
     cams = TrainingCameras(V.to(ctx.device), K.to(ctx.device), cfg.data.width, cfg.data.height,
                            None if images is None else images.to(ctx.device))
     return surfel_view(scene, cams, shading=cfg.optim.shading, render_cfg=cfg.render, task="reconstruct",

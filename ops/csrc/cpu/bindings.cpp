@@ -1,11 +1,12 @@
 // Python bindings of the CPU backend (the CUDA backend's are cuda/bindings.cpp): the shared API of
 // ../api.h, defined in splat_cpu.cpp, plus the CPU-only counting sort, atomic-scatter backward,
-// projection and view-dependent colour.
+// projection, view-dependent colour and the tiled render.
 #include <torch/extension.h>
 
 #include "../api.h"
 #include "projection_cpu.h"
 #include "scatter_cpu.h"
+#include "tiled_cpu.h"
 #include "view_colour_cpu.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -21,5 +22,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &nsplat::project_forward, "EWA projection of oriented surfels (CPU)");
   m.def("project_backward", &nsplat::project_backward, "Backward of project_forward (CPU)");
   m.def("view_colour_forward", &nsplat::view_colour_forward, "View-dependent SH colour (CPU)");
+  m.def("render_tiled", &nsplat::render_tiled, "Every splat within a Mahalanobis radius, composited (CPU)");
   m.def("view_colour_backward", &nsplat::view_colour_backward, "Backward of view_colour_forward (CPU)");
 }

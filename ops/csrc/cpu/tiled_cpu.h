@@ -1,0 +1,18 @@
+// CPU-only tiled render of every splat within a Mahalanobis radius (ops/tiled.py::splat_tiled).
+#pragma once
+#include <torch/extension.h>
+
+#include <vector>
+
+#include "../api.h"
+
+namespace nsplat {
+
+// {image [B,H,W,C], alpha [B,H,W,1], depth [B,H,W,1]}: per pixel, every splat with q(x) <= cutoff2 in
+// (per-pixel depth, index) order, composited front to back (alpha mode) while the transmittance is >= t_stop.
+// feat is [N,C] or [B,N,C].
+std::vector<at::Tensor> render_tiled(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
+                                     at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor feat, at::Tensor bg,
+                                     int64_t width, int64_t height, double cutoff2, double t_stop);
+
+}  // namespace nsplat
