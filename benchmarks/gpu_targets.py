@@ -4,9 +4,9 @@
         --main-job-s 17.2 --op OUT/op_cuda.json --name gpu_targets-h200
 
 Reads the step table of ``benchmarks.gpu_lego`` (one and eight views at 200²), the validation curve of the lego run
-(``benchmarks.val_curve``: the best val PSNR reached within 180 s), the main job's wall time and ``benchmarks.op_cuda``'s
-gsplat rows (nsplat / gsplat at each N; the worst counts). A missing input leaves its row "not measured". Writes
-``benchmarks/results/<name>.json`` and prints the Markdown table.
+(``benchmarks.val_curve``: the best val PSNR reached within 180 s), the main job's wall time and the gsplat rows of
+``benchmarks.op_cuda`` (nsplat / gsplat at each N; the worst counts). A missing input leaves its row "not measured".
+Writes ``benchmarks/results/<name>.json`` and prints the Markdown table.
 """
 from __future__ import annotations
 

@@ -144,8 +144,9 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
                  background: torch.Tensor | None = None, with_alpha: bool = False, with_means2d: bool = False,
                  draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
-    ``with_alpha``: ``(images, alpha [B,H,W,1])``; with ``with_means2d`` the projected screen means ``[B,N,2]``
-    follow, in the graph: their gradient is each camera's screen-space gradient, ``SplatOutput.means2d``).
+    ``with_alpha``: ``(images, alpha [B,H,W,1])``; with ``with_means2d`` the projected screen means of each op
+    call follow, a list of ``[b,N,2]`` (the cameras in order) in the graph: their gradient is each camera's
+    screen-space gradient, ``SplatOutput.means2d``).
 
     ``draws``: the images (and alpha) are the mean of that many independent op draws, draw ``j`` rendered
     with every seed shifted by ``j·DRAW_STRIDE`` (draw 0 is the one-draw render): less sampling noise in
@@ -192,7 +193,7 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     if with_alpha:
         result.append(torch.cat([o.alpha for o in outs], 0))
     if with_means2d:
-        result.append(torch.cat([o.means2d for o in outs], 0))
+        result.append([o.means2d for o in outs])
     return tuple(result) if len(result) > 1 else result[0]
 
 

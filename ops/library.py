@@ -374,9 +374,9 @@ def _entries_by_point_sorted(indices: Tensor, N: int, chunk: int | None = None) 
     they sort after every point's: ``entries [B·H·W·m]`` int64 holds the filled slots grouped by point in
     ``entries[:seg[N]]``, then the empty ones; ``seg [N+1]`` int64 are the points' segment offsets.
 
-    The slots are sorted in runs of at most ``chunk`` (default :data:`SORT_CHUNK`; ``torch.sort`` handles at most 2^31 - 1 elements); each
-    run's slots of key ``k`` then go, in order, after those of the earlier runs within key ``k``'s segment, which
-    is the order one stable sort of all the slots gives (tested at a small ``chunk``)."""
+    The slots are sorted in runs of at most ``chunk`` (default :data:`SORT_CHUNK`; ``torch.sort`` handles at most
+    2^31 - 1 elements); each run's slots of key ``k`` then go, in order, after those of the earlier runs within key
+    ``k``'s segment, which is the order one stable sort of all the slots gives (tested at a small ``chunk``)."""
     chunk = SORT_CHUNK if chunk is None else chunk
     flat = indices.reshape(-1)
     total, dev = flat.numel(), flat.device

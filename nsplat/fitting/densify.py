@@ -210,9 +210,9 @@ class Densify(Strategy):
     def after_backward(self, fit: FitState, view: ViewRender) -> None:
         if self._step is None:
             self._step = DensityStats(fit.scene.num_points, self.stats.grad.dtype, self.stats.grad.device)
-        grad = view.means2d.grad
-        if grad is not None:  # None: no point of these views received a gradient
-            self._step.observe(grad.to(self._step.grad.dtype) * view.share, fit.views.width * fit.views.height)
+        for m2d in view.means2d:
+            if m2d.grad is not None:  # None: no point of these views received a gradient
+                self._step.observe(m2d.grad.to(self._step.grad.dtype) * view.share, fit.views.width * fit.views.height)
 
     def after_step(self, fit: FitState, step: int) -> dict[str, float]:
         local = self._step if self._step is not None else DensityStats(fit.scene.num_points, self.stats.grad.dtype,

@@ -204,7 +204,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
                 scene, views.viewmats[v], views.Ks[v], views.width, views.height, render_cfg,
                 seed=torch.tensor(seeds) if len(group) > 1 else seeds[0], shading=cfg.shading, background=background,
                 with_alpha=True, with_means2d=screen)
-            for m2d in means2d:  # the views' own screen-space gradients, kept apart (Strategy.screen_grads)
+            for m2d in means2d[0] if screen else []:  # the views' own screen-space gradients (Strategy.screen_grads)
                 m2d.retain_grad()
             view = ViewRender(v, image, alpha, idx.numel(), *means2d)
             loss = (image - views.images[v]).abs().mean(dim=(1, 2, 3)).sum()

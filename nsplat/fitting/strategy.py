@@ -65,15 +65,16 @@ class ViewRender:
         indices: the views' indices in :attr:`FitState.views` (one unless every strategy accepts several).
         image: ``[b,H,W,C]`` renders. alpha: ``[b,H,W,1]`` coverage.
         share: views in the step (each view's loss is divided by it).
-        means2d: ``[b,N,2]`` the views' projected screen means when a strategy has :attr:`Strategy.screen_grads`
-            (else ``None``); after the backward their ``grad`` is each view's own screen-space gradient.
+        means2d: the views' projected screen means when a strategy has :attr:`Strategy.screen_grads` (else
+            ``None``): one ``[b_i,N,2]`` per op call, the views in order; after the backward their ``grad`` is each
+            view's own screen-space gradient.
     """
 
     indices: list[int]
     image: torch.Tensor
     alpha: torch.Tensor
     share: int
-    means2d: torch.Tensor | None = None
+    means2d: list[torch.Tensor] | None = None
 
 
 class Strategy:
