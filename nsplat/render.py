@@ -98,7 +98,10 @@ def background_of(cfg: RenderConfig, channels: int, like: torch.Tensor) -> torch
     if len(cfg.background) != channels:
         raise ValueError(f"render.background: expected {channels} values for {channels}-channel features, "
                          f"got {list(cfg.background)}")
-    return torch.tensor(cfg.background, dtype=like.dtype, device=like.device)
+    bg = like.new_empty(channels)  # filled from Python scalars: torch.tensor(..., device=) would copy from the host
+    for c, value in enumerate(cfg.background):
+        bg[c].fill_(value)
+    return bg
 
 
 def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -138,10 +141,12 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                  cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
-                 background: torch.Tensor | None = None, with_alpha: bool = False,
-                 draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+                 background: torch.Tensor | None = None, with_alpha: bool = False, with_means2d: bool = False,
+                 draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with
-    ``with_alpha``: ``(images, alpha [B,H,W,1])``).
+    ``with_alpha``: ``(images, alpha [B,H,W,1])``; with ``with_means2d`` the projected screen means of each op
+    call follow, a list of ``[b,N,2]`` (the cameras in order) in the graph: their gradient is each camera's
+    screen-space gradient, ``SplatOutput.means2d``).
 
     ``draws``: the images (and alpha) are the mean of that many independent op draws, draw ``j`` rendered
     with every seed shifted by ``j·DRAW_STRIDE`` (draw 0 is the one-draw render): less sampling noise in
@@ -160,6 +165,8 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
         raise ValueError(f"draws: expected an int >= 1, got {draws}")
     if isinstance(seed, torch.Tensor) and draws > 1:
         raise ValueError("seed: one seed per camera needs one draw")
+    if with_means2d and draws > 1:
+        raise ValueError("with_means2d: the screen means of one draw only (draws=1)")
     if draws > 1:
         runs = [render_views(scene, viewmats, Ks, width, height, cfg, seed=seed + j * DRAW_STRIDE, shading=shading,
                              background=background, with_alpha=True) for j in range(draws)]
@@ -174,7 +181,7 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
             shaded = torch.stack([view_colour(scene.features, means, viewmats[b]) for b in range(B)])
         else:
             shaded = lambert(scene.features, normals, viewmats)
-        seeds = seed if isinstance(seed, torch.Tensor) else torch.tensor([seed + b for b in range(B)])
+        seeds = seed if isinstance(seed, torch.Tensor) else torch.arange(B) + seed
         if cfg.renderer == "splat":
             outs = [render(means, normals, scene.scales, scene.opacities, shaded, viewmats, Ks, width, height, cfg,
                            seed=seeds, background=background)]
@@ -182,8 +189,12 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
             outs = [render(means, normals, scene.scales, scene.opacities, shaded[b], viewmats[b:b + 1],
                            Ks[b:b + 1], width, height, cfg, seed=int(seeds[b]), background=background)
                     for b in range(B)]
-    image = torch.cat([o.image for o in outs], 0)
-    return (image, torch.cat([o.alpha for o in outs], 0)) if with_alpha else image
+    result = [torch.cat([o.image for o in outs], 0)]
+    if with_alpha:
+        result.append(torch.cat([o.alpha for o in outs], 0))
+    if with_means2d:
+        result.append([o.means2d for o in outs])
+    return tuple(result) if len(result) > 1 else result[0]
 
 
 @torch.no_grad()

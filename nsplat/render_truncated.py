@@ -98,7 +98,7 @@ def splat_truncated(means: torch.Tensor, normals: torch.Tensor, scales: torch.Te
         depths.append(torch.cat(rows_d, 0))
         totals.append(torch.cat(rows_t, 0))
     return SplatOutput(image=torch.stack(images), alpha=torch.stack(alphas), depth=torch.stack(depths),
-                       total=torch.stack(totals))
+                       total=torch.stack(totals), means2d=proj.means2d)
 
 
 def _render_tile(x0: int, x1: int, y0: int, y1: int, valid: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,

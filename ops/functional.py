@@ -252,4 +252,4 @@ def splat(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opac
     image, alpha, depth = _composite_op(proj, features, Ks, indices, probs, background, composite, estimator,
                                         deterministic)
     return SplatOutput(image=image, alpha=alpha, depth=depth, total=total, indices=indices, probs=probs,
-                       work=work)
+                       work=work, means2d=proj.means2d)

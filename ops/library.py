@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from .build import backend
+from .host_reads import host_read
 
 __all__ = ["Native", "native", "sample_op", "composite_forward_op", "composite_backward_op", "project_op",
            "project_backward_op", "view_colour_op", "view_colour_backward_op"]
@@ -91,7 +92,8 @@ def camera_streams(seed: Tensor, B: int) -> Tensor:
     """The native sampler's ``(seed, camera)`` pair of each of ``B`` cameras, ``[B,2]`` int64 on the CPU: a 0-dim
     ``seed`` gives ``(seed, b)`` (the cameras of one call draw independent streams), a ``[B]`` seed gives
     ``(seed[b], 0)`` (camera ``b`` draws as the only camera of a call with seed ``seed[b]``)."""
-    s = seed.detach().to("cpu", torch.int64)
+    s = seed.detach()
+    s = (s if s.device.type == "cpu" else host_read(s)).to(torch.int64)  # a seed on a device: one counted read
     if s.dim() == 0:
         return torch.stack([s.expand(B), torch.arange(B, dtype=torch.int64)], 1).contiguous()
     return torch.stack([s, torch.zeros(B, dtype=torch.int64)], 1).contiguous()
@@ -362,12 +364,40 @@ def _entries_by_point(indices: Tensor, N: int, nat: Native | None = None) -> tup
     return _entries_by_point_sorted(indices, N)
 
 
-def _entries_by_point_sorted(indices: Tensor, N: int) -> tuple[Tensor, Tensor]:
+#: Slots sorted at once by :func:`_entries_by_point_sorted` (torch's device sort refuses more than 2^31 - 1).
+SORT_CHUNK = 2**30
+
+
+def _entries_by_point_sorted(indices: Tensor, N: int, chunk: int | None = None) -> tuple[Tensor, Tensor]:
     """:func:`_entries_by_point` by a stable device sort of all ``B·H·W·m`` slots (any device; the reference for
     the native one), with no device→host copy: no size depends on the data. Empty slots are keyed ``N``, so
     they sort after every point's: ``entries [B·H·W·m]`` int64 holds the filled slots grouped by point in
-    ``entries[:seg[N]]``, then the empty ones; ``seg [N+1]`` int64 are the points' segment offsets."""
+    ``entries[:seg[N]]``, then the empty ones; ``seg [N+1]`` int64 are the points' segment offsets.
+
+    The slots are sorted in runs of at most ``chunk`` (default :data:`SORT_CHUNK`; ``torch.sort`` handles at most
+    2^31 - 1 elements); each run's slots of key ``k`` then go, in order, after those of the earlier runs within key
+    ``k``'s segment, which is the order one stable sort of all the slots gives (tested at a small ``chunk``)."""
+    chunk = SORT_CHUNK if chunk is None else chunk
     flat = indices.reshape(-1)
-    keys, entries = torch.sort(torch.where(flat >= 0, flat, N), stable=True)
-    seg = torch.searchsorted(keys, torch.arange(N + 1, dtype=keys.dtype, device=keys.device))
+    total, dev = flat.numel(), flat.device
+    bounds = torch.arange(N + 1, dtype=flat.dtype, device=dev)  # key k's slots: [seg[k], seg[k + 1])
+    if total <= chunk:
+        keys, entries = torch.sort(torch.where(flat >= 0, flat, N), stable=True)
+        return entries, torch.searchsorted(keys, bounds)
+    counts = torch.zeros(N + 1, dtype=torch.int64, device=dev)  # slots per key (N: the empty ones)
+    for start in range(0, total, chunk):
+        part = flat[start:start + chunk]
+        counts += torch.bincount(torch.where(part >= 0, part, N), minlength=N + 1)
+    seg = torch.zeros(N + 1, dtype=torch.int64, device=dev)
+    seg[1:] = torch.cumsum(counts[:-1], 0)
+    before = torch.zeros(N + 1, dtype=torch.int64, device=dev)  # each key's slots in the earlier runs
+    entries = torch.empty(total, dtype=torch.int64, device=dev)
+    for start in range(0, total, chunk):
+        part = flat[start:start + chunk]
+        keys, order = torch.sort(torch.where(part >= 0, part, N), stable=True)
+        run_seg = torch.searchsorted(keys, torch.cat([bounds, bounds.new_full((1,), N + 1)]))
+        # a run's slot of key k at rank r within the run's key-k slots goes to seg[k] + before[k] + r
+        shift = seg + before - run_seg[:-1]
+        entries[shift[keys] + torch.arange(keys.numel(), dtype=torch.int64, device=dev)] = order + start
+        before += run_seg[1:] - run_seg[:-1]
     return entries, seg

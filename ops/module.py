@@ -16,7 +16,8 @@ class Splatter(nn.Module):
     Holds the op's settings as one :class:`SplatSettings` (``splatter.settings``; each also reads as an
     attribute, ``splatter.samples``); every call without an explicit ``seed`` uses a fresh
     seed (``base_seed + number of previous calls``) so that successive training steps draw
-    independent samples while a run stays reproducible. The call counter is saved in the state dict.
+    independent samples while a run stays reproducible. The call counter is saved in the state dict and stays on
+    the host when the module moves to a device.
 
     Example:
         >>> splatter = Splatter(samples=40, eps=0.01)
@@ -43,6 +44,14 @@ class Splatter(nn.Module):
         self.settings = settings
         self.base_seed = base_seed
         self.register_buffer("calls", torch.zeros((), dtype=torch.long), persistent=True)
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202 - nn.Module's signature
+        """Moves the module (``.to``, ``.cuda``, ...) but keeps ``calls`` on the host: the sampler reads each call's
+        seed there, and a counter on a GPU would make that read a synchronisation."""
+        calls = self.calls
+        super()._apply(fn, recurse)
+        self._buffers["calls"] = calls
+        return self
 
     def forward(self, means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                 features: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,

@@ -22,6 +22,8 @@ class SplatOutput:
         probs: ``[B, H, W, samples]`` inclusion probabilities ``π_k(x)`` of the sampled points,
             ``0`` for empty slots (``None`` for the dense renderer).
         work: ``[B, H, W, 1]`` int32 number of exact kernel evaluations the sampler made per pixel.
+        means2d: ``[B, N, 2]`` the points' projected screen means, in the autograd graph: after a backward
+            (``means2d.retain_grad()``) their gradient is each camera's own screen-space gradient of the points.
     """
 
     image: torch.Tensor
@@ -31,6 +33,7 @@ class SplatOutput:
     indices: torch.Tensor | None = None
     probs: torch.Tensor | None = None
     work: torch.Tensor | None = None
+    means2d: torch.Tensor | None = None
 
     @property
     def normalized_depth(self) -> torch.Tensor:

@@ -115,7 +115,7 @@ def splat_dense(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
         for lst, pc in zip(outs, per_cam):
             lst.append(torch.cat(pc, 0).reshape(height, width, -1))
     image, alpha, depth, total = (torch.stack(o, 0) for o in outs)
-    return SplatOutput(image=image, alpha=alpha, depth=depth, total=total)
+    return SplatOutput(image=image, alpha=alpha, depth=depth, total=total, means2d=proj.means2d)
 
 
 def size_measures(proj: Projected, camera: int, width: int, height: int) -> torch.Tensor:

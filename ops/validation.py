@@ -99,9 +99,8 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
 
     Shapes: ``means [N,3]``, ``normals [N,3]`` (non-zero), ``scales [N,2]`` (> 0),
     ``opacities [N]`` (in [0, 1]), ``features [N,C]`` or ``[B,N,C]`` (per camera), ``viewmats [B,4,4]`` (last
-    row 0 0 0 1, 3×3 part a
-    rotation times a uniform scale), ``Ks [B,3,3]`` (``fx, fy > 0``, last row 0 0 1, ``K[1,0] = 0``);
-    one float dtype and one device.
+    row 0 0 0 1, 3×3 part a rotation times a uniform scale), ``Ks [B,3,3]`` (``fx, fy > 0``, last row 0 0 1,
+    ``K[1,0] = 0``); one float dtype and one device.
     """
     names = ("means", "normals", "scales", "opacities", "features", "viewmats", "Ks")
     given = (means, normals, scales, opacities, features, viewmats, Ks)
@@ -129,7 +128,7 @@ def check_geometry(means, normals, scales, opacities, features, viewmats, Ks) ->
     for n, t in zip(names, tensors):
         _finite(n, t)
     if values_checked():
-        _check_geometry_values(N, normals, scales, opacities, viewmats, Ks, dtype, device)
+        _check_geometry_values(N, normals, scales, opacities, viewmats, Ks)
     return N, (features.shape[-1] if features is not None else 0), B
 
 
@@ -143,16 +142,17 @@ def check_feature_shape(features: torch.Tensor, B: int, N: int, cameras: str) ->
 
 
 def _check_geometry_values(N: int, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                           viewmats: torch.Tensor, Ks: torch.Tensor, dtype: torch.dtype, device: torch.device) -> None:
+                           viewmats: torch.Tensor, Ks: torch.Tensor) -> None:
     """The data-dependent checks of :func:`check_geometry` (eager only, see :func:`values_checked`)."""
     if N:
         fail_if((normals.norm(dim=-1) == 0).any(), lambda: "normals: every normal must have non-zero length")
         fail_if((scales <= 0).any(), lambda: "scales: expected values > 0 (world-unit tangent standard deviations)")
         fail_if(((opacities < 0) | (opacities > 1)).any(), lambda: "opacities: expected values in [0, 1]")
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device)
-    fail_if((viewmats[:, 3, :] != last).any(),
+    # compared with Python scalars: a constant tensor built on the device would be a copy from the host
+    fail_if((viewmats[:, 3, :3] != 0).any() | (viewmats[:, 3, 3] != 1).any(),
             lambda: "viewmats: expected world-to-camera matrices with last row [0, 0, 0, 1]")
-    fail_if((Ks[:, 2, :] != last[1:]).any(), lambda: "Ks: expected intrinsics with last row [0, 0, 1]")
+    fail_if((Ks[:, 2, :2] != 0).any() | (Ks[:, 2, 2] != 1).any(),
+            lambda: "Ks: expected intrinsics with last row [0, 0, 1]")
     fail_if((Ks[:, 1, 0] != 0).any(), lambda: "Ks: expected K[1, 0] == 0 (upper-triangular intrinsics)")
     fail_if(((Ks[:, 0, 0] <= 0) | (Ks[:, 1, 1] <= 0)).any(),
             lambda: "Ks: expected focal lengths fx = K[0,0] > 0 and fy = K[1,1] > 0")

@@ -15,6 +15,8 @@ from collections.abc import Callable, Iterator
 
 import torch
 
+from .host_reads import host_read
+
 #: The pending value checks of the innermost :func:`value_checks` block (None: checks run at once).
 _PENDING: contextvars.ContextVar[list[tuple[torch.Tensor, Callable[[], str]]] | None] = contextvars.ContextVar(
     "nsplat_pending_value_checks", default=None)
@@ -54,7 +56,7 @@ def _collected() -> Iterator[None]:
         by_device.setdefault(cond.device, []).append(i)
     failed = [False] * len(pending)
     for rows in by_device.values():
-        flags = torch.stack([pending[i][0].reshape(()) for i in rows]).cpu().tolist()  # the one host read
+        flags = host_read(torch.stack([pending[i][0].reshape(()) for i in rows])).tolist()  # the one host read
         for i, f in zip(rows, flags):
             failed[i] = bool(f)
     for (_, message), f in zip(pending, failed):

@@ -11,7 +11,7 @@ import torch
 from nsplat.fitting.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, fit
-from nsplat.render import RenderConfig
+from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks.reconstruct import fibonacci_sphere
 from tests.test_reconstruct import OFF, _lr, _tiny_problem, _views
@@ -89,16 +89,33 @@ def test_densify_respects_growth_caps_highest_gradients_first():
 
 
 def test_screen_space_gradient_is_in_pixels():
-    # A camera at the origin looking down +z (f = 100 px); a point at depth 4. Moving it by one pixel in x
-    # moves it 4/100 world units, so a world gradient of g along x is g·4/100 per pixel.
+    """Each view's own screen-space gradient ``[b,N,2]`` (loss per pixel of motion) counts by its length times the
+    loss's pixel count; a point counts as seen by the views that moved it."""
     stats = DensityStats(2)
-    means = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0]])
-    grad = torch.tensor([[1.0, 0.0, 7.0], [0.0, 0.0, 0.0]])  # the depth component does not count
-    K = torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
-    stats.observe(grad, means, torch.eye(4), K, pixels=1)
-    assert torch.allclose(stats.grad, torch.tensor([0.04, 0.0])) and torch.equal(stats.views, torch.tensor([1.0, 0]))
-    stats.observe(grad, means, torch.eye(4), K, pixels=1)
-    assert torch.allclose(stats.average(), torch.tensor([0.04, 0.0]))
+    grad = torch.tensor([[[3.0, 4.0], [0.0, 0.0]], [[0.0, 1.0], [0.0, 0.0]]])  # two views, two points
+    stats.observe(grad, pixels=2)
+    assert torch.equal(stats.grad, torch.tensor([12.0, 0.0])) and torch.equal(stats.views, torch.tensor([2.0, 0]))
+    assert torch.equal(stats.average(), torch.tensor([6.0, 0.0]))
+
+
+def test_one_call_keeps_each_views_screen_gradient_apart():
+    """Views rendered in one op call (one seed per view) give each view the screen-space gradient of rendering it
+    alone: what lets a growing fit render a step's views in one call."""
+    scene, views, _ = _stage1_like(n=60, views=3, res=12)
+    rcfg = RenderConfig(renderer="splat", samples=8)
+    seeds = torch.tensor([5, 9, 2])
+
+    def grads(v: list[int], seed) -> torch.Tensor:
+        image, (m2d,) = render_views(scene, views.viewmats[v], views.Ks[v], 12, 12, rcfg, seed=seed, shading="sh",
+                                     with_means2d=True)
+        m2d.retain_grad()
+        (image - views.images[v]).abs().mean(dim=(1, 2, 3)).sum().backward()
+        return m2d.grad
+
+    together = grads([0, 1, 2], seeds)
+    assert bool((together != 0).any(-1).any(-1).all()), "every view is meant to move some points"
+    for b in range(3):
+        assert torch.allclose(together[b:b + 1], grads([b], int(seeds[b])), rtol=1e-5, atol=1e-9)
 
 
 def test_densify_config_errors_name_the_field():

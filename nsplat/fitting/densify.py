@@ -1,9 +1,10 @@
 """Adaptive density control, a fitter strategy: split, clone and prune on a schedule.
 
-The fitter (:func:`nsplat.fitting.fit`) renders one view per backward; after each one
-:meth:`DensityStats.observe` converts the view's gradient of the loss w.r.t. the point positions into a
-screen-space magnitude ``‖∂L/∂μ₂d‖`` (pixels: the camera-plane part of the world gradient times
-``z/f``) and accumulates it per point. Every ``every`` epochs, :func:`densify` acts on the averages:
+The fitter (:func:`nsplat.fitting.fit`) renders a step's views in one op call and keeps each camera's projected
+screen means ``μ₂d [B,N,2]`` in the graph (:attr:`Strategy.screen_grads`); after the backward
+:meth:`DensityStats.observe` takes each view's own screen-space gradient magnitude ``‖∂L_v/∂μ₂d‖`` (loss per pixel
+of motion, times the view's pixel count) and accumulates it per point. Every ``every`` epochs, :func:`densify` acts
+on the averages:
 
 * **grow** where the average screen-space gradient exceeds ``grad_threshold`` (the image wants the point
   elsewhere or wants more points there): surfels larger than ``split_size`` (world std-dev) are
@@ -108,17 +109,13 @@ class DensityStats(nn.Module):
         self.views = self.views.new_zeros(num_points)
 
     @torch.no_grad()
-    def observe(self, grad_means: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor,
-                pixels: int) -> None:
-        """Accumulate one view: ``grad_means [N,3]`` = ∂L/∂means of that view's loss (a pixel mean),
-        ``means [N,3]``, ``viewmat [4,4]``, ``K [3,3]``; ``pixels``: the loss's pixel count."""
-        R, t = viewmat[:3, :3], viewmat[:3, 3]
-        z = means @ R[2] + t[2]
-        g_cam = grad_means @ R.T
-        g_px = g_cam[:, :2].norm(dim=-1) * z.clamp_min(0) * (2.0 / (K[0, 0] + K[1, 1])) * pixels
+    def observe(self, grad_means2d: torch.Tensor, pixels: int) -> None:
+        """Accumulate views: ``grad_means2d [b,N,2]`` = each view's own ∂L_v/∂μ₂d (its loss a mean over pixels,
+        ``μ₂d`` in pixels); ``pixels``: the loss's pixel count."""
+        g_px = grad_means2d.norm(dim=-1) * pixels
         seen = g_px > 0
-        self.grad += torch.where(seen, g_px, torch.zeros_like(g_px))
-        self.views += seen.to(self.views.dtype)
+        self.grad += torch.where(seen, g_px, torch.zeros_like(g_px)).sum(0)
+        self.views += seen.to(self.views.dtype).sum(0)
 
     @torch.no_grad()
     def add_(self, grad: torch.Tensor, views: torch.Tensor) -> None:
@@ -197,13 +194,12 @@ class Densify(Strategy):
     views (and ranks) after Adam's step, and an event after every due epoch (logs ``densify/<count>``; with
     ``prune_weight``, the contributions are rendered first with the op seeds of stream ``densify``)."""
 
-    per_view = True  # the statistics are of each view's own screen-space gradient
+    screen_grads = True  # the statistics are of each view's own screen-space gradient (kept apart per camera)
 
     def __init__(self, cfg: DensifyConfig) -> None:
         self.cfg = cfg
         self.stats: DensityStats | None = None
         self._step: DensityStats | None = None        # this step's views (this rank's share)
-        self._seen: torch.Tensor | None = None        # ∂L/∂means after the previous view of this step
 
     def attach(self, scene: SurfelScene, views: PosedViews | None) -> dict[str, nn.Module]:
         if "means" not in scene.cfg.learn:
@@ -212,21 +208,17 @@ class Densify(Strategy):
         return {"density": self.stats}
 
     def after_backward(self, fit: FitState, view: ViewRender) -> None:
-        means = fit.scene.tensor("means")
         if self._step is None:
             self._step = DensityStats(fit.scene.num_points, self.stats.grad.dtype, self.stats.grad.device)
-        g = means.grad if self._seen is None else means.grad - self._seen  # this view's own gradient
-        self._seen = means.grad.clone()
-        v = fit.views
-        (index,) = view.indices  # per_view: one view per render
-        self._step.observe(g * view.share, means.detach(), v.viewmats[index], v.Ks[index],
-                           v.width * v.height)
+        for m2d in view.means2d:
+            if m2d.grad is not None:  # None: no point of these views received a gradient
+                self._step.observe(m2d.grad.to(self._step.grad.dtype) * view.share, fit.views.width * fit.views.height)
 
     def after_step(self, fit: FitState, step: int) -> dict[str, float]:
         local = self._step if self._step is not None else DensityStats(fit.scene.num_points, self.stats.grad.dtype,
                                                                           self.stats.grad.device)
         self.stats.add_(distributed.all_reduce_sum(local.grad), distributed.all_reduce_sum(local.views))
-        self._step, self._seen = None, None
+        self._step = None
         epochs = fit.epoch_done(step)
         if epochs is None or not self.cfg.due(epochs):
             return {}

@@ -1,8 +1,8 @@
 """The surfel fitter: a :class:`~nsplat.scene.SurfelScene` fitted to posed images (paper §4).
 
 Used by the shape task (:mod:`nsplat.tasks.reconstruct`) and by stage 1 of the neural task. Each step renders
-the step's views one at a time through the gateway (:mod:`nsplat.render`), takes the L1 distance to their
-images and backpropagates per view (memory stays at one view's graph); Adam steps once per step, the rate
+the step's views in one op call through the gateway (:mod:`nsplat.render`; one call per view only for a strategy
+with ``per_view``), takes the L1 distance to their images and backpropagates; Adam steps once per step, the rate
 follows :meth:`FitConfig.rate_factor` per epoch. What is optional (repositioning, density control, a mask
 term) plugs in as a :class:`~nsplat.fitting.strategy.Strategy`. The engine (:mod:`nsplat.engine`) runs the
 steps: logging, atomic checkpoints, exact resume (also across changes of the point count). Data-parallel
@@ -196,14 +196,17 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         # gradient (the same samples and images as one call per view, op.md §3), else one call per view;
         # gradients are summed over the calls and over ranks.
         share = list(distributed.shard(idx.numel()))
-        together = not any(st.per_view for st in strategies)
+        together, screen = not any(st.per_view for st in strategies), any(st.screen_grads for st in strategies)
         for group in ([share] if together and share else [[j] for j in share]):
             v = [int(idx[j]) for j in group]
             seeds = [op_seed(seed, "fit", k * cfg.batch + j) for j in group]
-            image, alpha = render_views(scene, views.viewmats[v], views.Ks[v], views.width, views.height, render_cfg,
-                                        seed=torch.tensor(seeds) if len(group) > 1 else seeds[0],
-                                        shading=cfg.shading, background=background, with_alpha=True)
-            view = ViewRender(v, image, alpha, idx.numel())
+            image, alpha, *means2d = render_views(
+                scene, views.viewmats[v], views.Ks[v], views.width, views.height, render_cfg,
+                seed=torch.tensor(seeds) if len(group) > 1 else seeds[0], shading=cfg.shading, background=background,
+                with_alpha=True, with_means2d=screen)
+            for m2d in means2d[0] if screen else []:  # the views' own screen-space gradients (Strategy.screen_grads)
+                m2d.retain_grad()
+            view = ViewRender(v, image, alpha, idx.numel(), *means2d)
             loss = (image - views.images[v]).abs().mean(dim=(1, 2, 3)).sum()
             for strategy in strategies:
                 term = strategy.loss(state, view)

@@ -65,12 +65,16 @@ class ViewRender:
         indices: the views' indices in :attr:`FitState.views` (one unless every strategy accepts several).
         image: ``[b,H,W,C]`` renders. alpha: ``[b,H,W,1]`` coverage.
         share: views in the step (each view's loss is divided by it).
+        means2d: the views' projected screen means when a strategy has :attr:`Strategy.screen_grads` (else
+            ``None``): one ``[b_i,N,2]`` per op call, the views in order; after the backward their ``grad`` is each
+            view's own screen-space gradient.
     """
 
     indices: list[int]
     image: torch.Tensor
     alpha: torch.Tensor
     share: int
+    means2d: list[torch.Tensor] | None = None
 
 
 class Strategy:
@@ -84,6 +88,9 @@ class Strategy:
     #: The strategy needs each view's own gradient (:meth:`after_backward` after every single view): the
     #: fitter then renders one view per op call.
     per_view: bool = False
+    #: The strategy reads each view's screen-space gradient (:attr:`ViewRender.means2d`), which one op call over
+    #: several views keeps apart per camera.
+    screen_grads: bool = False
 
     def attach(self, scene: SurfelScene, views: PosedViews | None) -> dict[str, nn.Module]:
         """Check that the strategy applies to ``scene`` (and ``views`` when given), raising

@@ -7,6 +7,7 @@
 #include <ATen/Dispatch.h>
 
 #include <algorithm>
+#include <atomic>
 #include <vector>
 
 #if defined(NSPLAT_CUDA_EMULATE)
@@ -43,6 +44,18 @@ using Stream = cudaStream_t;
 using DeviceGuard = c10::cuda::CUDAGuard;
 inline Stream current_stream() { return c10::cuda::getCurrentCUDAStream(); }
 #endif
+
+// Reads of device values by the host (each one a synchronisation on a GPU), counted for the tests (the module's
+// host_reads()); every such read of the backend goes through to_host.
+inline std::atomic<int64_t>& host_read_count() {
+  static std::atomic<int64_t> count{0};
+  return count;
+}
+
+inline at::Tensor to_host(const at::Tensor& t) {
+  ++host_read_count();
+  return t.to(at::kCPU);
+}
 
 // Raw device buffer of n bytes (at least 1) from PyTorch's caching allocator.
 inline at::Tensor bytes(int64_t n, const at::TensorOptions& dev) {

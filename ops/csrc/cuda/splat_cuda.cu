@@ -654,7 +654,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
     for (int64_t b = 0; b < B; ++b)
       tree_keys<S>(trees[b], cam(mu, b, 2), cam(amp, b, 1), cam(sig2, b, 1), N, counts.data_ptr<int64_t>() + b, opts,
                    stream);
-    const at::Tensor counts_host = counts.to(at::kCPU);  // synchronises (1 of 2)
+    const at::Tensor counts_host = to_host(counts);  // synchronises (1 of 2)
     at::Tensor sizes = at::zeros({B, tiles + 2}, i64);
     std::vector<at::Tensor> metrics(B), near_counts(B);
     for (int64_t b = 0; b < B; ++b) {
@@ -676,7 +676,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       exclusive_sum(tile_counts.data_ptr<int64_t>(), sizes.data_ptr<int64_t>() + b * (tiles + 2), tiles + 1, opts,
                     stream);
     }
-    const at::Tensor sizes_host = sizes.to(at::kCPU);  // synchronises (2 of 2)
+    const at::Tensor sizes_host = to_host(sizes);  // synchronises (2 of 2)
     for (int64_t b = 0; b < B; ++b) {
       CudaTree& tree = trees[b];
       const int64_t* off_h = sizes_host.data_ptr<int64_t>() + b * (tiles + 2);
@@ -724,6 +724,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   });
   return {indices, probs, total, work};
 }
+
+int64_t host_reads_cuda() { return host_read_count().load(); }
 
 std::vector<at::Tensor> composite_forward_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                                const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc,
