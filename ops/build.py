@@ -22,8 +22,8 @@ CSRC = Path(__file__).resolve().parent / "csrc"
 _MODULES: dict[str, ModuleType] = {}
 #: The CPU backend's sources (csrc/cpu). lanes_<isa>.cpp compile the sampler's tile search for each instruction
 #: set (by `#pragma GCC target`, not by flags), lanes_dispatch.cpp picks one at run time.
-CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "view_colour_cpu.cpp", "tiled_cpu.cpp",
-               "lanes_dispatch.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
+CPU_SOURCES = ("bindings.cpp", "splat_cpu.cpp", "scatter_cpu.cpp", "projection_cpu.cpp", "view_colour_cpu.cpp",
+               "tiled_cpu.cpp", "lanes_dispatch.cpp", "lanes_base.cpp", "lanes_avx2.cpp", "lanes_avx512.cpp")
 #: The CUDA backend's sources (csrc/cuda): the Python module and the kernel files.
 CUDA_SOURCES = ("bindings.cpp", "splat_cuda.cu", "projection_cuda.cu")
 #: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4). The C++ standard is
