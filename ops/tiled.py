@@ -61,11 +61,39 @@ def splat_tiled(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor
     bg = background if background is not None else features.new_zeros(C)
     if means.device.type != "cpu":
         return splat_tiled_torch(proj, features, Ks, width, height, cutoff2=cutoff2, background=bg)
-    image, alpha, depth = backend(means.device).render_tiled(
+    image, alpha, depth, _ = _native(proj, features, Ks, bg, width, height, tol, point_weights=False)
+    return SplatOutput(image=image, alpha=alpha, depth=depth)
+
+
+@torch.no_grad()
+def point_weights_tiled(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                        viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *, tol: float = 1e-7,
+                        near: float = 0.01, far: float = 1e10, lowpass: float = 1.0,
+                        backface_cull: bool = False) -> torch.Tensor:
+    """``[B,N]``: each splat's alpha-compositing weights ``w_k(x) = α_k(x)·T_k(x)`` summed over every pixel of each
+    camera, with :func:`splat_tiled`'s model (every splat within ``tol`` of its peak, exact order): how much each
+    point shows in each view, with no sampling (a point hidden behind a surface shows ``≈ 0``). CPU only (the
+    arguments are moved there); arguments as for :func:`splat_tiled`."""
+    cutoff2_of(tol)
+    args = [t.detach().cpu() for t in (means, normals, scales, opacities, viewmats, Ks)]
+    with value_checks():
+        check_geometry(*args[:4], None, *args[4:])
+        check_settings(width=width, height=height, near=near, far=far, lowpass=lowpass, composite="alpha",
+                       background=None, C=1, dtype=args[0].dtype, device=args[0].device)
+    proj = project(*args, near=near, far=far, lowpass=lowpass, backface_cull=backface_cull)
+    ones = args[0].new_zeros(args[0].shape[0], 1)
+    *_, weights = _native(proj, ones, args[5], args[0].new_zeros(1), width, height, tol, point_weights=True)
+    return weights.to(means.device)
+
+
+def _native(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, bg: torch.Tensor, width: int, height: int,
+            tol: float, *, point_weights: bool) -> list[torch.Tensor]:
+    """The CPU kernel ``render_tiled``: ``[image, alpha, depth, weights]`` (``weights [B,N]`` or empty)."""
+    return backend(torch.device("cpu")).render_tiled(
         proj.means2d.contiguous(), proj.conics.contiguous(), proj.amps.contiguous(), proj.sigma2.contiguous(),
         proj.normals_cam.contiguous(), proj.plane_offsets.contiguous(), proj.depths.contiguous(), Ks.contiguous(),
-        features.contiguous(), bg.contiguous(), int(width), int(height), float(cutoff2), float(tol) ** 2)
-    return SplatOutput(image=image, alpha=alpha, depth=depth)
+        features.contiguous(), bg.contiguous(), int(width), int(height), cutoff2_of(tol), float(tol) ** 2,
+        bool(point_weights))
 
 
 def splat_tiled_torch(proj: Projected, features: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *,

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from nsplat.ops import project, splat_dense, splat_tiled
-from nsplat.ops.tiled import cutoff2_of, splat_tiled_torch
+from nsplat.ops.tiled import cutoff2_of, point_weights_tiled, splat_tiled_torch
 from tests.conftest import make_cameras, make_scene
 
 W, H = 23, 17
@@ -82,3 +82,17 @@ def test_bad_geometry_is_named_before_native_code():
     bad[2] = -bad[2]
     with pytest.raises(ValueError, match="scales"):
         splat_tiled(*bad)
+
+
+def test_point_weights_are_the_dense_compositing_weights():
+    """``point_weights_tiled`` is each splat's Σ_x α_k T_k per camera: the dense oracle's gradient of the summed image
+    with respect to a unit feature probe (∂I(x)/∂f_k = w_k(x)), to rounding when nothing is cut."""
+    args, _ = _scene(torch.float64, False)
+    means, normals, scales, opac, _, V, K, w, h = args
+    weights = point_weights_tiled(means, normals, scales, opac, V, K, w, h, tol=1e-300)
+    assert weights.shape == (3, 60)
+    for b in range(3):
+        probe = torch.ones(60, 1, dtype=torch.float64, requires_grad=True)
+        img = splat_dense(means, normals, scales, opac, probe, V[b:b + 1], K[b:b + 1], w, h).image
+        (grad,) = torch.autograd.grad(img.sum(), probe)
+        assert float((weights[b] - grad[:, 0]).abs().max()) < 1e-10

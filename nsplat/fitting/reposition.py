@@ -17,6 +17,7 @@ from nsplat.config import require_fields
 from nsplat.engine import op_seed
 from nsplat.fitting.strategy import FitState, Strategy
 from nsplat.ops import tangent_frame
+from nsplat.ops.tiled import point_weights_tiled
 from nsplat.render import RenderConfig, render
 from nsplat.scene import SurfelScene
 from nsplat.shading import lambert
@@ -32,6 +33,10 @@ class RepositionConfig:
             after the last epoch: a point moved then would keep its copied attributes unfitted.
         contribution: what "contributes" means (:func:`point_contributions`): ``radiance`` (weight × colour,
             the paper's "visual contribution") or ``weight``.
+        exact: count the contributions with the exact compositing weights of every point in reach
+            (:func:`nsplat.ops.tiled.point_weights_tiled`, no sampling) instead of the sampled op's estimate. A
+            sample composites only the points it drew, so a point hidden behind a surface can show through it and
+            count as contributing; with exact weights it counts as hidden and moves to the surface.
         min_weight: a point contributes when its contribution summed over all views is at least this.
         jitter: tangent offset of a moved point, in units of its source point's std-dev.
     """
@@ -39,6 +44,7 @@ class RepositionConfig:
     enabled: bool = True
     every: int = 1
     contribution: Literal["radiance", "weight"] = "radiance"
+    exact: bool = False
     min_weight: float = 0.02
     jitter: float = 1.0
 
@@ -49,8 +55,8 @@ class RepositionConfig:
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                         cfg: RenderConfig, *, seed: int = 0, chunk: int = 12,
                         measure: Literal["radiance", "weight"] = "radiance",
-                        shading: Literal["lambert", "none", "sh"] = "lambert", part: tuple[int, int] = (0, 1)
-                        ) -> torch.Tensor:
+                        shading: Literal["lambert", "none", "sh"] = "lambert", part: tuple[int, int] = (0, 1),
+                        exact: bool = False) -> torch.Tensor:
     """Per-point visual contribution summed over views: ``[N]`` (no gradient).
 
     ``measure="weight"``: ``Σ_views Σ_x w_k(x)`` (total compositing weight). ``measure="radiance"``:
@@ -63,6 +69,9 @@ def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Te
     ``part=(r, P)`` renders only every ``P``-th block of views starting at block ``r`` (a block is one
     camera, or ``chunk`` cameras without per-camera shading), with the same seeds as the whole: the ``P``
     parts sum to the whole.
+
+    ``exact``: the weights are the exact ones of :func:`nsplat.ops.tiled.point_weights_tiled` (every point in reach,
+    in depth order, no sampling; ``seed`` unused), ``chunk`` cameras a call.
     """
     with torch.no_grad():
         geo = (scene.means.detach(), scene.normals.detach(), scene.scales.detach(), scene.opacities.detach())
@@ -70,6 +79,18 @@ def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Te
     N, dtype, device = scene.num_points, geo[0].dtype, geo[0].device
     total = torch.zeros(N, dtype=dtype, device=device)
     per_camera = measure == "radiance" and shading == "lambert"
+    if exact:
+        for s in range(part[0] * chunk, viewmats.shape[0], part[1] * chunk):
+            vm, K = viewmats[s:s + chunk], Ks[s:s + chunk]
+            weights = point_weights_tiled(*geo, vm, K, width, height, near=cfg.near, far=cfg.far, lowpass=cfg.lowpass,
+                                          backface_cull=cfg.backface_cull)             # [b,N]
+            if measure == "weight":
+                total += weights.sum(0)
+            elif per_camera:
+                total += (weights * lambert(feats, geo[1], vm).norm(dim=-1)).sum(0)
+            else:
+                total += weights.sum(0) * (feats[:, :3] if shading == "sh" else feats).norm(dim=-1)
+        return total
     step = 1 if per_camera else chunk
     for s in range(part[0] * step, viewmats.shape[0], part[1] * step):
         vm, K = viewmats[s:s + step], Ks[s:s + step]
@@ -128,7 +149,7 @@ class Reposition(Strategy):
         contrib = point_contributions(fit.scene, v.viewmats, v.Ks, v.width, v.height, fit.render_cfg,
                                       seed=op_seed(fit.seed, "reposition", epochs - 1), chunk=fit.batch,
                                       measure=self.cfg.contribution, shading=fit.shading,
-                                      part=(distributed.rank(), distributed.world_size()))
+                                      part=(distributed.rank(), distributed.world_size()), exact=self.cfg.exact)
         contrib = distributed.all_reduce_sum(contrib)
         moved = reposition(fit.scene, contrib, self.cfg.min_weight, self.cfg.jitter, fit.generator, fit.optimizer)
         return {"epoch/moved": float(moved)}

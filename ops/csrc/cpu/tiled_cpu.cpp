@@ -14,6 +14,8 @@
 #include <utility>
 #include <vector>
 
+#include <omp.h>
+
 #include "../core/ewa.h"
 #include "../core/sps.h"
 #include "tiled_cpu.h"
@@ -36,7 +38,7 @@ template <typename S>
 void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& sig2,
                 const at::Tensor& nrm, const at::Tensor& off, const at::Tensor& zc, const at::Tensor& Kd,
                 const at::Tensor& feat, const at::Tensor& bg, double cutoff2, double t_stop, at::Tensor& image,
-                at::Tensor& alpha, at::Tensor& depth) {
+                at::Tensor& alpha, at::Tensor& depth, at::Tensor& weights) {
   const int64_t B = amp.size(0), N = amp.size(1), H = image.size(1), W = image.size(2), C = feat.size(-1);
   const int64_t tx = (W + kTiledTile - 1) / kTiledTile, ty = (H + kTiledTile - 1) / kTiledTile;
   const int nt = std::max(1, at::get_num_threads());
@@ -90,10 +92,16 @@ void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& a
       for (int64_t y = r[2]; y <= r[3]; ++y)
         for (int64_t x = r[0]; x <= r[1]; ++x) items[fill[y * tx + x]++] = static_cast<int>(k);
     }
+    // per-thread sums of each splat's compositing weights, added in thread order after the pass: with a static
+    // schedule the sums are the same on every run with the same thread count
+    const bool sum_weights = weights.numel() > 0;
+    std::vector<std::vector<double>> acc(sum_weights ? nt : 0);
 #pragma omp parallel num_threads(nt)
     {
       std::vector<Reach<S>> cand;
-#pragma omp for schedule(dynamic, 1)
+      std::vector<double>* mine = sum_weights ? &acc[omp_get_thread_num()] : nullptr;
+      if (mine != nullptr) mine->assign(N, 0.0);
+#pragma omp for schedule(static, 1)
       for (int64_t t = 0; t < tx * ty; ++t) {
         const int64_t x0 = (t % tx) * kTiledTile, y0 = (t / tx) * kTiledTile;
         const int* list = items.data() + start[t];
@@ -123,6 +131,7 @@ void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& a
             for (size_t j = 0; j < cand.size() && T >= S(t_stop); ++j) {
               const Reach<S>& r = cand[j];
               const S w = r.a * T;
+              if (mine != nullptr) (*mine)[r.k] += static_cast<double>(w);
               const S* f = fb + static_cast<int64_t>(r.k) * C;
               for (int64_t ch = 0; ch < C; ++ch) img[ch] += w * f[ch];
               dep += w * r.d;
@@ -136,6 +145,14 @@ void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& a
         }
       }
     }
+    if (sum_weights) {
+      S* wb = weights.data_ptr<S>() + b * N;
+      for (int64_t k = 0; k < N; ++k) {
+        double total = 0.0;
+        for (const auto& part : acc) total += part.empty() ? 0.0 : part[k];
+        wb[k] = static_cast<S>(total);
+      }
+    }
   }
 }
 
@@ -143,7 +160,8 @@ void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& a
 
 std::vector<at::Tensor> render_tiled(at::Tensor mu, at::Tensor con, at::Tensor amp, at::Tensor sig2, at::Tensor nrm,
                                      at::Tensor off, at::Tensor zc, at::Tensor Ks, at::Tensor feat, at::Tensor bg,
-                                     int64_t width, int64_t height, double cutoff2, double t_stop) {
+                                     int64_t width, int64_t height, double cutoff2, double t_stop,
+                                     bool point_weights) {
   for (const auto& t : {mu, con, amp, sig2, nrm, off, zc, Ks, feat, bg}) {
     TORCH_CHECK(t.device().is_cpu() && t.is_contiguous(), "nsplat render_tiled expects contiguous CPU tensors");
   }
@@ -154,11 +172,12 @@ std::vector<at::Tensor> render_tiled(at::Tensor mu, at::Tensor con, at::Tensor a
   at::Tensor image = at::empty({B, height, width, C}, opts);
   at::Tensor alpha = at::empty({B, height, width, 1}, opts);
   at::Tensor depth = at::empty({B, height, width, 1}, opts);
+  at::Tensor weights = at::zeros({point_weights ? B : 0, amp.size(1)}, opts);
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_render_tiled", [&] {
-    tiled_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, feat, bg, cutoff2, t_stop, image, alpha, depth);
+    tiled_impl<scalar_t>(mu, con, amp, sig2, nrm, off, zc, Kd, feat, bg, cutoff2, t_stop, image, alpha, depth, weights);
   });
-  return {image, alpha, depth};
+  return {image, alpha, depth, weights};
 }
 
 }  // namespace nsplat
