@@ -56,8 +56,9 @@ def test_colour_converts_exactly_to_3dgs_sh(degree):
     np.testing.assert_allclose(_eval_3dgs(f_dc, f_rest, d), ours, atol=1e-12)
 
 
-def _run_point_only(tmp_path: Path) -> Path:
+def _run_point_only(tmp_path: Path, **render) -> Path:
     raw = _tiny(tmp_path / "cache", steps=0)
+    raw["render"].update(render)
     raw["geometry"] = {"grid": 24, "sh_degree": 2, "opacity": None,
                        "optim": {"epochs": 1, "batch": 3, "reposition": {"enabled": False}, "shading": "sh"}}
     raw["eval"]["geometry"] = False
@@ -139,9 +140,10 @@ def test_antialiased_and_fitted_exports_render_as_nsplat_in_their_modes(tmp_path
     header names: the antialiased file within 0.5 dB of nsplat's (dense) render's PSNR, the classic file fitted to
     nsplat's renders closer to them than the conversion alone; the antialiased file restarts stage 1 as the
     surfels it came from (its compensation folded into the opacities)."""
-    run = _run_point_only(tmp_path)
+    run = _run_point_only(tmp_path, lowpass=GS_LOWPASS)
     paths = {name: tmp_path / f"{name}.ply" for name in ("converted", "fitted", "antialiased")}
-    for name, flags in (("converted", ["--fit-epochs", "0"]), ("fitted", []), ("antialiased", ["--antialiased"])):
+    for name, flags in (("converted", ["--fit-epochs", "0"]), ("fitted", ["--fit-epochs", "10"]),
+                        ("antialiased", ["--antialiased"])):
         assert main(["export", "--run", str(run), "--format", "3dgs", "--out", str(paths[name]), *flags]) == 0
     assert PlyData.read(str(paths["antialiased"])).comments == ["SplatRenderMode: mip", "train_flags antialiasing"]
     assert PlyData.read(str(paths["fitted"])).comments == ["SplatRenderMode: default"]
@@ -162,7 +164,8 @@ def test_antialiased_and_fitted_exports_render_as_nsplat_in_their_modes(tmp_path
                                        views.viewmats[i], views.Ks[i], views.width, views.height, views.background,
                                        antialiased=g["antialiased"]) for i in range(len(views))]).float().clamp(0, 1)
         vs_gt[name], vs_ours[name] = float(psnr(img, gt).mean()), float(psnr(img, ours).mean())
-    print(vs_gt, vs_ours)
+    # measured: 16.38 dB (antialiased) against nsplat's 16.54 dB (a one-epoch run at 24 px); fitted 30.61 dB
+    # against nsplat's render, converted 28.76 dB
     assert vs_gt["antialiased"] > vs_gt["nsplat"] - 0.5, vs_gt
     assert vs_ours["fitted"] > vs_ours["converted"] + 1.0, vs_ours
 
