@@ -19,9 +19,13 @@ opacity logits, raw features), every value here is op-ready.
 
 3DGS (``--format 3dgs``): 3D Gaussian splatting's ``point_cloud.ply`` layout, which Gaussian-splatting
 viewers open (:mod:`nsplat.gaussian_ply`): every surfel as a flat Gaussian with its colour as spherical
-harmonics, its opacity and tangent std-devs converted from nsplat's low-pass-compensated kernel to 3DGS's
-(:mod:`nsplat.gaussian_kernel`: exact per view, averaged over the training cameras because a file holds one
-opacity per Gaussian; what is left is measured in docs/results.md). It needs a colour model: the point-only
+harmonics. Two files: the classic one (header ``SplatRenderMode: default``), its opacity and tangent std-devs
+converted from nsplat's low-pass-compensated kernel to 3DGS's (:mod:`nsplat.gaussian_kernel`: exact per view,
+averaged over the training cameras because a file holds one opacity per Gaussian) and then fitted to nsplat's
+renders of the training cameras (:mod:`nsplat.gaussian_fit`); and the antialiased one (``antialiased``; header
+``SplatRenderMode: mip`` and ``train_flags antialiasing``) for rasterisers with Mip-Splatting's opacity
+compensation, which is nsplat's κ: the surfels' own opacities. What each shows is measured in docs/results.md
+("3DGS export"). It needs a colour model: the point-only
 model (RGB or SH colour; Lambert-shaded tasks export their albedo); for the neural task, stage 1's surfels and
 view colour (the U-Net is not in the file: a 3DGS viewer shows the stage-1 model).
 

@@ -19,6 +19,10 @@ variances also take the difference of the dilations, ``s'² = s² + (λ − 0.3)
 size of a pixel at the splat over the same cameras (exact for a surfel facing the camera; floored at
 ``(s/10)²``).
 
+A rasteriser with Mip-Splatting's compensation (gsplat's ``antialiased``) multiplies the opacity by
+``sqrt(det(J Jᵀ) / det(J Jᵀ + 0.3 I))`` in every view, which is κ at λ = 0.3: for it the export writes the
+surfels' own opacities (:func:`antialiased_of_surfels`), exact in every view, and import takes them as they are.
+
 Import inverts it: ``o = min(1 − 1e-6, o'/κ̄)`` with κ̄ of the imported surfel over the run's training cameras
 and ``s² = s'² − (λ − 0.3)·p̄²``, so an export read back into the run it came from has its own opacities
 wherever ``o·κ̄ < 0.99``.
