@@ -125,6 +125,13 @@ def fit_gaussians(start: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, wi
     Returns:
         ``(fitted, history)``: float32 Gaussians (normals as given) and ``{"mse": [per-epoch mean], "seconds": t}``.
     """
+    with torch.enable_grad():                                               # also when called under no_grad
+        return _fit(start, viewmats, Ks, width, height, targets, background, settings, antialiased)
+
+
+def _fit(start: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, targets: torch.Tensor,
+         background: torch.Tensor, settings: FitSettings, antialiased: bool) -> tuple[Gaussians, dict]:
+    """:func:`fit_gaussians`' loop (the same arguments), with gradients on."""
     dt = torch.float32
     means0 = start.means.detach().to(dt)
     extent = float((means0.max(0).values - means0.min(0).values).norm())
