@@ -88,7 +88,7 @@ def covariances(normals: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def nsplat_targets(model: ViewModel, draws: int) -> torch.Tensor:
     """nsplat's renders ``[V,H,W,3]`` of ``model``'s training cameras (its ``render_cfg``, op seed ``model.seed
-    + v`` for camera ``v``, the mean of ``draws`` draws)."""
+    + v`` for camera ``v``, the mean of ``draws`` draws; its shading, or its SH colour seen from each camera)."""
     cams = model.cameras
     out = []
     for v in range(cams.viewmats.shape[0]):
@@ -97,6 +97,8 @@ def nsplat_targets(model: ViewModel, draws: int) -> torch.Tensor:
         if model.colours is not None:
             feats = model.colours(feats, model.normals.detach(), V)
             feats = feats[0] if feats.dim() == 3 else feats
+        elif model.sh_degree is not None:
+            feats = view_colour(feats, model.means.detach(), V[0])
         imgs = [render(model.means.detach(), model.normals.detach(), model.scales.detach(),
                        model.opacities.detach(), feats, V, K, cams.width, cams.height, model.render_cfg,
                        seed=model.seed + v + j * DRAW_STRIDE, background=model.background).image[0, ..., :3]
