@@ -4,30 +4,31 @@
 For a run's stage-1 surfels (``RUN/geometry.ply``), on the held-out views of its config:
 
 * ``nsplat``: the op's render (evaluation settings and draws), the run's own stage-1 score;
-* ``3dgs: export``: the file ``export --format 3dgs`` writes, rendered by the 3DGS reference renderer
-  (:mod:`tests.gs_reference`: 3DGS's image formation, gsplat's 0.999 clamp, centre-depth order);
-* ``3dgs: raw export``: the surfels written without the kernel conversion (what the export wrote before,
-  opacities and std-devs as nsplat holds them);
-* ``3dgs: per-view amplitude``: the raw surfels (opacity ≤ 0.99) in the reference renderer with the
-  per-view amplitude compensation of Mip-Splatting (``antialiased``), which equals nsplat's κ per view when
-  ``render.lowpass`` is 0.3: what an exact, view-dependent opacity would give (no 3DGS file can hold it);
-* ``nsplat: import``: the exported file read back as stage 1's start (``geometry.init: ply``, the inverse
-  conversion) rendered by nsplat — the round trip.
+* ``3dgs classic: converted``: ``export --format 3dgs --fit-epochs 0`` (the kernel conversion alone, κ̄ over the
+  training cameras) in the 3DGS reference renderer (:mod:`tests.gs_reference`: 3DGS's image formation,
+  gsplat's 0.999 clamp, centre-depth order);
+* ``3dgs classic: fitted``: ``export --format 3dgs --fit-epochs N`` (the conversion, then N epochs of fitting
+  to nsplat's renders of the training cameras, :mod:`nsplat.gaussian_fit`) in the same renderer;
+* ``3dgs antialiased``: ``export --format 3dgs --antialiased`` in the reference renderer's antialiased mode
+  (Mip-Splatting's compensation, which the file's header asks for);
+* ``nsplat: import …``: each file read back as stage 1's start (``geometry.init: ply``) rendered by nsplat.
 
 Each row: PSNR against the ground truth and against nsplat's render (mean over views). Usage::
 
-    python train.py --run runs/default geometry.log.checkpoint=0      # or any run with a geometry.ply
-    python -m benchmarks.export_fidelity --run runs/default
-    NSPLAT_DATA=... python train.py --config configs/lego_splat_only.yaml --run runs/lego24 \\
-        geometry.optim.epochs=24 geometry.optim.anneal_epochs=4
-    NSPLAT_DATA=... python -m benchmarks.export_fidelity --run runs/lego24
+    python train.py --run runs/default                    # or any run with a geometry.ply
+    python -m benchmarks.export_fidelity --run runs/default --fit-epochs 3
+    NSPLAT_DATA=... python train.py --config configs/lego_splat_only.yaml --run runs/lego12 \\
+        geometry.optim.epochs=12 geometry.optim.anneal_epochs=2
+    NSPLAT_DATA=... python -m benchmarks.export_fidelity --run runs/lego12 --fit-epochs 3
 
-Writes ``benchmarks/results/export_fidelity-<run folder name>.json``.
+Settings are chosen with ``--split val``; the reported figures are ``--split test``. Writes
+``benchmarks/results/export_fidelity-<run folder name>[-<split>].json``.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,8 +38,8 @@ import yaml
 
 from benchmarks.common import markdown, write_result
 from nsplat.config import load_config
-from nsplat.export import export, surfel_arrays
-from nsplat.gaussian_ply import write_gaussian_ply
+from nsplat.export import export
+from nsplat.gaussian_fit import FitSettings
 from nsplat.metrics_image import psnr
 from nsplat.render import render_views
 from nsplat.scene import SurfelScene
@@ -49,11 +50,13 @@ from nsplat.viewer.runs import load_run
 from tests.gs_reference import gaussians_of_ply, render_3dgs
 
 
-def reference_images(path: Path, views, **kw) -> torch.Tensor:
-    """The reference renderer's images ``[B,H,W,3]`` of the 3DGS file ``path`` from ``views``."""
+def reference_images(path: Path, views) -> torch.Tensor:
+    """The reference renderer's images ``[B,H,W,3]`` of the 3DGS file ``path`` from ``views``, in the mode its
+    header names."""
     g = gaussians_of_ply(str(path))
     return torch.stack([render_3dgs(g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["sh"],
-                                    views.viewmats[i], views.Ks[i], views.width, views.height, views.background, **kw)
+                                    views.viewmats[i], views.Ks[i], views.width, views.height, views.background,
+                                    antialiased=g["antialiased"])
                         for i in range(len(views))]).float().clamp(0, 1)
 
 
@@ -72,6 +75,7 @@ def main() -> None:
     ap.add_argument("--run", type=Path, required=True, help="run folder with a geometry.ply (stage 1 finished)")
     ap.add_argument("--split", default="test", help="held-out split (default: test)")
     ap.add_argument("--views", type=int, default=0, help="first N views of the split only (0: all)")
+    ap.add_argument("--fit-epochs", type=int, default=FitSettings().epochs, help="epochs of the fitted classic file")
     args = ap.parse_args()
     raw = yaml.safe_load((args.run / "config.yaml").read_text())
     cfg = load_config(Config, raw)
@@ -96,31 +100,32 @@ def main() -> None:
     ours = nsplat_images(scene, cfg, views)
     timing["nsplat_s"] = time.perf_counter() - t0
     add("nsplat", ours, None)
+    files = {"3dgs classic: converted": {"fit": FitSettings(epochs=0)},
+             f"3dgs classic: fitted ({args.fit_epochs} epochs)": {"fit": FitSettings(epochs=args.fit_epochs)},
+             "3dgs antialiased": {"antialiased": True}}
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        path = export(load_run(args.run, cpu, points=True), "3dgs", Path(tmp) / "point_cloud.ply")
-        timing["export_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        add("3dgs: export", reference_images(path, views), ours)
-        timing["reference_s"] = time.perf_counter() - t0
-        a = surfel_arrays(load_run(args.run, cpu, points=True))
-        rawp = write_gaussian_ply(Path(tmp) / "raw.ply", a["means"], a["normals"], a["scales"], a["opacities"],
-                                  a["features"])
-        add("3dgs: raw export", reference_images(rawp, views), ours)
-        if abs(cfg.eval_render().lowpass - 0.3) < 1e-12:
-            clamped = write_gaussian_ply(Path(tmp) / "clamped.ply", a["means"], a["normals"], a["scales"],
-                                         a["opacities"].clip(0, 0.99), a["features"])
-            add("3dgs: per-view amplitude", reference_images(clamped, views, antialiased=True), ours)
-        raw_import = {**raw, "geometry": {**raw["geometry"], "init": "ply", "ply": str(path)}}
-        icfg = load_config(Config, raw_import)
-        imported = initial_geometry(icfg, load_views(icfg, "train", cpu), seed=0)
-        add("nsplat: import", nsplat_images(imported, cfg, views), ours)
+        for i, (name, kw) in enumerate(files.items()):
+            t0 = time.perf_counter()
+            path = export(load_run(args.run, cpu, points=True), "3dgs", Path(tmp) / f"{i}.ply", **kw)
+            timing[f"export_s: {name}"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            add(name, reference_images(path, views), ours)
+            timing[f"reference_s: {name}"] = time.perf_counter() - t0
+            files[name] = path
+        for name in ("3dgs classic: converted", "3dgs antialiased"):
+            raw_import = {**raw, "geometry": {**raw["geometry"], "init": "ply", "ply": str(files[name])}}
+            icfg = load_config(Config, raw_import)
+            imported = initial_geometry(icfg, load_views(icfg, "train", cpu), seed=0)
+            add(f"nsplat: import of {name}", nsplat_images(imported, cfg, views), ours)
     header = ["render", f"PSNR vs ground truth ({args.split}, dB)", "PSNR vs nsplat (dB)"]
     table = markdown(header, rows)
-    write_result(f"export_fidelity-{args.run.name}", {
+    suffix = "" if args.split == "test" else f"-{args.split}"
+    write_result(f"export_fidelity-{args.run.name}{suffix}", {
+        "command": "python -m benchmarks.export_fidelity " + " ".join(sys.argv[1:]),
         "run": str(args.run), "split": args.split, "views": len(views), "points": scene.num_points,
         "resolution": [views.width, views.height], "lowpass": cfg.eval_render().lowpass,
-        "samples": cfg.eval_render().samples, "draws": cfg.eval.draws, "results": record, "timing_s": timing,
+        "samples": cfg.eval_render().samples, "draws": cfg.eval.draws, "fit": dataclasses.asdict(
+            FitSettings(epochs=args.fit_epochs)), "results": record, "timing_s": timing,
         "geometry_epochs": cfg.geometry.optim.epochs}, table)
 
 

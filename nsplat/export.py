@@ -19,9 +19,13 @@ opacity logits, raw features), every value here is op-ready.
 
 3DGS (``--format 3dgs``): 3D Gaussian splatting's ``point_cloud.ply`` layout, which Gaussian-splatting
 viewers open (:mod:`nsplat.gaussian_ply`): every surfel as a flat Gaussian with its colour as spherical
-harmonics, its opacity and tangent std-devs converted from nsplat's low-pass-compensated kernel to 3DGS's
-(:mod:`nsplat.gaussian_kernel`: exact per view, averaged over the training cameras because a file holds one
-opacity per Gaussian; what is left is measured in docs/results.md). It needs a colour model: the point-only
+harmonics. Two files: the classic one (header ``SplatRenderMode: default``), its opacity and tangent std-devs
+converted from nsplat's low-pass-compensated kernel to 3DGS's (:mod:`nsplat.gaussian_kernel`: exact per view,
+averaged over the training cameras because a file holds one opacity per Gaussian) and then fitted to nsplat's
+renders of the training cameras (:mod:`nsplat.gaussian_fit`); and the antialiased one (``antialiased``; header
+``SplatRenderMode: mip`` and ``train_flags antialiasing``) for rasterisers with Mip-Splatting's opacity
+compensation, which is nsplat's κ: the surfels' own opacities. What each shows is measured in docs/results.md
+("3DGS export"). It needs a colour model: the point-only
 model (RGB or SH colour; Lambert-shaded tasks export their albedo); for the neural task, stage 1's surfels and
 view colour (the U-Net is not in the file: a 3DGS viewer shows the stage-1 model).
 
@@ -37,7 +41,8 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from nsplat.gaussian_kernel import to_gaussian, view_statistics
+from nsplat.gaussian_fit import FitSettings, Gaussians, fit_gaussians, nsplat_targets
+from nsplat.gaussian_kernel import antialiased_of_surfels, to_gaussian, view_statistics
 from nsplat.gaussian_ply import write_gaussian_ply
 from nsplat.view_model import ViewModel
 
@@ -111,10 +116,15 @@ def read_npz(path: str | Path) -> dict[str, torch.Tensor]:
         return {k: torch.from_numpy(z[k]) for k in z.files}
 
 
-def write_3dgs(model: ViewModel, path: str | Path) -> Path:
+def write_3dgs(model: ViewModel, path: str | Path, *, antialiased: bool = False,
+               fit: FitSettings | None = None) -> Path:
     """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussian_ply`),
     with nsplat's kernel converted to 3DGS's (opacities and scales, :mod:`nsplat.gaussian_kernel`: averaged
     over the model's training cameras, with its ``render_cfg.lowpass``).
+
+    ``antialiased``: for a rasteriser with Mip-Splatting's compensation (the surfels' own opacities when the
+    low-pass is 0.3; the header says so). ``fit``: then fit the Gaussians to nsplat's renders of the training
+    cameras (:mod:`nsplat.gaussian_fit`; ``None`` or 0 epochs: the conversion alone).
 
     Raises ``ValueError`` when the model's features are not a colour (a shader turns them into RGB) or it
     has no training cameras."""
@@ -126,21 +136,35 @@ def write_3dgs(model: ViewModel, path: str | Path) -> Path:
         raise ValueError(f"--format 3dgs: the {model.task or 'run'}'s model has no training cameras; converting "
                          "nsplat's kernel to 3DGS's averages over them")
     a = surfel_arrays(model)
-    cams, lowpass = model.cameras, float(model.render_cfg.lowpass)
+    cams, rc = model.cameras, model.render_cfg
     t = {k: torch.from_numpy(a[k]) for k in ("means", "normals", "scales", "opacities")}
-    kappa, pixel, _ = view_statistics(t["means"], t["normals"], t["scales"], cams.viewmats.cpu(), cams.Ks.cpu(),
-                                      cams.width, cams.height, lowpass=lowpass, near=model.render_cfg.near,
-                                      far=model.render_cfg.far)
-    scales, opacities = to_gaussian(t["scales"], t["opacities"], kappa, pixel, lowpass)
-    return write_gaussian_ply(path, a["means"], a["normals"], scales.numpy(), opacities.numpy(), a["features"])
+    args = (t["means"], t["normals"], t["scales"])
+    views = (cams.viewmats.cpu(), cams.Ks.cpu(), cams.width, cams.height)
+    kw = dict(lowpass=float(rc.lowpass), near=rc.near, far=rc.far)
+    if antialiased:
+        scales, opacities = antialiased_of_surfels(*args, t["opacities"], *views, **kw)
+    else:
+        kappa, pixel, _ = view_statistics(*args, *views, **kw)
+        scales, opacities = to_gaussian(t["scales"], t["opacities"], kappa, pixel, kw["lowpass"])
+    g = Gaussians(t["means"], t["normals"], scales, opacities, torch.from_numpy(a["features"]))
+    if fit is not None and fit.epochs > 0:
+        targets = nsplat_targets(model, fit.draws).cpu()
+        g, _ = fit_gaussians(g, *views[:2], cams.width, cams.height, targets, model.background.detach().cpu()[:3],
+                             fit, antialiased=antialiased)
+    return write_gaussian_ply(path, *(x.detach().numpy() for x in (g.means, g.normals, g.scales, g.opacities,
+                                                                    g.features)), antialiased=antialiased)
 
 
-def export(model: ViewModel, fmt: str, path: str | Path) -> Path:
-    """Write ``model`` as ``fmt`` (``ply``, ``3dgs`` or ``npz``) to ``path``."""
+def export(model: ViewModel, fmt: str, path: str | Path, *, antialiased: bool = False,
+           fit: FitSettings | None = None) -> Path:
+    """Write ``model`` as ``fmt`` (``ply``, ``3dgs`` or ``npz``) to ``path`` (``antialiased``, ``fit``: ``3dgs``
+    only, :func:`write_3dgs`)."""
+    if fmt != "3dgs" and (antialiased or fit is not None):
+        raise ValueError(f"--format {fmt}: the render mode and the fit are options of --format 3dgs")
     if fmt == "ply":
         return write_ply(model, path)
     if fmt == "3dgs":
-        return write_3dgs(model, path)
+        return write_3dgs(model, path, antialiased=antialiased, fit=fit)
     if fmt == "npz":
         return write_npz(model, path)
     raise ValueError(f"--format: expected one of {list(FORMATS)}, got {fmt!r}")

@@ -19,6 +19,10 @@ variances also take the difference of the dilations, ``s'² = s² + (λ − 0.3)
 size of a pixel at the splat over the same cameras (exact for a surfel facing the camera; floored at
 ``(s/10)²``).
 
+A rasteriser with Mip-Splatting's compensation (gsplat's ``antialiased``) multiplies the opacity by
+``sqrt(det(J Jᵀ) / det(J Jᵀ + 0.3 I))`` in every view, which is κ at λ = 0.3: for it the export writes the
+surfels' own opacities (:func:`antialiased_of_surfels`), exact in every view, and import takes them as they are.
+
 Import inverts it: ``o = min(1 − 1e-6, o'/κ̄)`` with κ̄ of the imported surfel over the run's training cameras
 and ``s² = s'² − (λ − 0.3)·p̄²``, so an export read back into the run it came from has its own opacities
 wherever ``o·κ̄ < 0.99``.
@@ -94,16 +98,40 @@ def from_gaussian(scales: torch.Tensor, opacities: torch.Tensor, kappa: torch.Te
     return s, torch.clamp(opacities.double() / kappa.double(), max=OPACITY_MAX)
 
 
+def antialiased_of_surfels(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor,
+                           opacities: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                           *, lowpass: float, near: float = 0.01, far: float = 1e10) -> tuple[torch.Tensor, torch.Tensor]:
+    """3DGS tangent std-devs ``[N,2]`` and opacities ``[N]`` (float64) of surfels for a rasteriser with
+    Mip-Splatting's compensation (``antialiased``): its per-view factor is nsplat's κ at 0.3 px², so with
+    ``lowpass`` 0.3 they are the surfels' own, ``o' = min(0.99, o)`` and ``s' = s``, exact in every view. Other
+    low-passes: ``s'`` as :func:`to_gaussian` and ``o' = min(0.99, o·κ̄/κ̄')``, κ̄ the surfels' mean κ and κ̄'
+    the Gaussians' mean compensation over the cameras (shapes as :func:`view_statistics`)."""
+    if lowpass == GS_LOWPASS:
+        return scales.double(), torch.clamp(opacities.double(), max=ALPHA_MAX)
+    kw = dict(near=near, far=far)
+    kappa, pixel, _ = view_statistics(means, normals, scales, viewmats, Ks, width, height, lowpass=lowpass, **kw)
+    s, _ = to_gaussian(scales, opacities, kappa, pixel, lowpass)
+    kappa_gs, _, _ = view_statistics(means, normals, s, viewmats, Ks, width, height, lowpass=GS_LOWPASS, **kw)
+    return s, torch.clamp(opacities.double() * kappa / kappa_gs, max=ALPHA_MAX)
+
+
 def surfels_of_gaussians(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                          viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, *, lowpass: float,
-                         near: float = 0.01, far: float = 1e10) -> tuple[torch.Tensor, torch.Tensor]:
+                         near: float = 0.01, far: float = 1e10,
+                         antialiased: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """nsplat std-devs ``[N,2]`` and opacities ``[N]`` (float64) of 3DGS Gaussians read as surfels (``means
     [N,3]``, ``normals [N,3]``, tangent ``scales [N,2]``, ``opacities [N]``: :func:`nsplat.gaussian_ply.
     read_gaussian_ply`), for cameras ``viewmats [V,4,4]``, ``Ks [V,3,3]`` of ``width × height`` and nsplat's
     low-pass ``lowpass``: :func:`from_gaussian` with κ̄ of the converted surfels (the pixel size does not
-    depend on the std-devs, so two passes of :func:`view_statistics` solve it exactly)."""
-    _, pixel, _ = view_statistics(means, normals, scales, viewmats, Ks, width, height, lowpass=lowpass, near=near,
-                                  far=far)
+    depend on the std-devs, so two passes of :func:`view_statistics` solve it exactly).
+
+    ``antialiased`` (a file for Mip-Splatting's compensation): the compensation is folded into the opacity,
+    ``o = min(1 − 1e-6, o'·κ̄'/κ̄)`` with κ̄' the Gaussians' mean compensation (κ at 0.3 px²) and κ̄ the surfels';
+    with ``lowpass`` 0.3 that is the file's own opacity."""
+    kw = dict(near=near, far=far)
+    if antialiased and lowpass == GS_LOWPASS:
+        return scales.double(), torch.clamp(opacities.double(), max=OPACITY_MAX)
+    kappa_gs, pixel, _ = view_statistics(means, normals, scales, viewmats, Ks, width, height, lowpass=GS_LOWPASS, **kw)
     s, _ = from_gaussian(scales, opacities, torch.ones_like(pixel), pixel, lowpass)
-    kappa, _, _ = view_statistics(means, normals, s, viewmats, Ks, width, height, lowpass=lowpass, near=near, far=far)
-    return from_gaussian(scales, opacities, kappa, pixel, lowpass)
+    kappa, _, _ = view_statistics(means, normals, s, viewmats, Ks, width, height, lowpass=lowpass, **kw)
+    return from_gaussian(scales, opacities * kappa_gs if antialiased else opacities, kappa, pixel, lowpass)

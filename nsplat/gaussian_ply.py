@@ -23,6 +23,13 @@ What this module writes (:func:`write_gaussian_ply`), exactly convertible both w
   bands zero. Every file has degree 3 (the layout 3DGS viewers expect); missing bands are zeros;
 * **opacity**: the logit of the opacity (clamped to ``[1e-6, 1 − 1e-6]``).
 
+**Render mode** (header comments, the conventions of gsplat/Brush and of a proposal on 3DGS's repository): an
+antialiased file, meant for a rasteriser with Mip-Splatting's opacity compensation ``sqrt(det Σ'₀ / det Σ')``
+(gsplat's ``antialiased``, PlayCanvas's ``GSPLAT_AA``), carries ``comment SplatRenderMode: mip`` and ``comment
+train_flags antialiasing``; a classic one ``comment SplatRenderMode: default``. Reading
+(:func:`file_render_mode`) honours the last ``SplatRenderMode`` comment (case-insensitive), else ``train_flags``
+naming ``antialiasing``, else Postshot's ``antialiased 1``; a file without any is classic.
+
 The values given are written as they are: ``export --format 3dgs`` first converts nsplat's opacities and
 std-devs to 3DGS's kernel, and ``geometry.init: ply`` converts what this module reads back
 (:mod:`nsplat.gaussian_kernel`).
@@ -54,6 +61,9 @@ SH_C0 = 0.5 / math.sqrt(math.pi)
 FLAT = 1e-3
 #: Opacities are clamped to ``[OPACITY_EPS, 1 − OPACITY_EPS]`` before the logit.
 OPACITY_EPS = 1e-6
+#: Header comments of each render mode.
+MODE_COMMENTS = {"classic": ["SplatRenderMode: default"],
+                 "antialiased": ["SplatRenderMode: mip", "train_flags antialiasing"]}
 #: Properties that mark a 3DGS file (besides ``f_rest_*``).
 REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
             "rot_0", "rot_1", "rot_2", "rot_3")
@@ -103,12 +113,13 @@ def surfel_rotations(normals: np.ndarray) -> np.ndarray:
 
 
 def write_gaussian_ply(path: str | Path, means: np.ndarray, normals: np.ndarray, scales: np.ndarray,
-                       opacities: np.ndarray, features: np.ndarray) -> Path:
+                       opacities: np.ndarray, features: np.ndarray, *, antialiased: bool = False) -> Path:
     """Write surfels as 3DGS Gaussians (module docstring); returns the path.
 
     Args:
         means ``[N,3]``, normals ``[N,3]`` (unit), scales ``[N,2]`` tangent std-devs, opacities ``[N]`` in
         [0, 1], features ``[N, 3·(L+1)²]``: RGB colour (``L = 0``) or view-dependent SH colour.
+        antialiased: mark the file for Mip-Splatting's compensation (header comments; the values are as given).
     """
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     f_dc, f_rest = to_gaussian_sh(features)
@@ -126,8 +137,24 @@ def write_gaussian_ply(path: str | Path, means: np.ndarray, normals: np.ndarray,
         arr[name] = col
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(path))
+    comments = MODE_COMMENTS["antialiased" if antialiased else "classic"]
+    PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<", comments=comments).write(str(path))
     return path
+
+
+def file_render_mode(comments: list[str]) -> str:
+    """``"antialiased"`` or ``"classic"``: the render mode a PLY header's ``comments`` (without the word
+    ``comment``) declare (module docstring)."""
+    mode = None
+    for c in comments:
+        words = c.lower().replace(":", " ").split()
+        if words[:1] == ["splatrendermode"] and len(words) > 1:
+            mode = "antialiased" if words[1] == "mip" else "classic"
+    if mode is not None:
+        return mode
+    flags = any(w[:1] == ["train_flags"] and "antialiasing" in w[1:] for w in (c.lower().split() for c in comments))
+    postshot = any(c.lower().split() == ["antialiased", "1"] for c in comments)
+    return "antialiased" if flags or postshot else "classic"
 
 
 def is_gaussian_ply(names: set[str]) -> bool:
@@ -135,15 +162,17 @@ def is_gaussian_ply(names: set[str]) -> bool:
     return all(k in names for k in REQUIRED)
 
 
-def read_gaussian_ply(path: str | Path) -> dict[str, torch.Tensor | int]:
+def read_gaussian_ply(path: str | Path) -> dict[str, torch.Tensor | int | bool]:
     """Read a 3DGS PLY (any tool's) as surfels (module docstring).
 
     Returns:
         ``means [N,3]``, ``normals [N,3]`` (unit), ``scales [N,2]``, ``opacities [N]`` (float64 tensors),
-        ``features [N, 3·(L+1)²]`` (this project's colour convention) and ``degree`` ``L`` (from the number of
-        ``f_rest_*`` properties). Bad files raise a one-line :class:`~nsplat.errors.DataError` naming them.
+        ``features [N, 3·(L+1)²]`` (this project's colour convention), ``degree`` ``L`` (from the number of
+        ``f_rest_*`` properties) and ``antialiased`` (the header's render mode, :func:`file_render_mode`). Bad
+        files raise a one-line :class:`~nsplat.errors.DataError` naming them.
     """
     path, v, names = read_vertex_element(path)
+    antialiased = file_render_mode(PlyData.read(str(path), mmap=True).comments) == "antialiased"
     missing = [k for k in REQUIRED if k not in names]
     if missing:
         raise DataError(f"{path}: not a 3D Gaussian splatting PLY: missing properties {missing}")
@@ -178,4 +207,5 @@ def read_gaussian_ply(path: str | Path) -> dict[str, torch.Tensor | int]:
     scales = np.sqrt(np.stack([np.einsum("ni,nij,nj->n", t, cov, t) for t in (t0, t1)], 1))
     return {"means": torch.from_numpy(means), "normals": torch.from_numpy(normals),
             "scales": torch.from_numpy(scales), "opacities": torch.from_numpy(1.0 / (1.0 + np.exp(-opac))),
-            "features": torch.from_numpy(from_gaussian_sh(f_dc, f_rest, degree)), "degree": degree}
+            "features": torch.from_numpy(from_gaussian_sh(f_dc, f_rest, degree)), "degree": degree,
+            "antialiased": antialiased}

@@ -65,12 +65,14 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
 
 
-def gaussians_of_ply(path: str) -> dict[str, torch.Tensor]:
+def gaussians_of_ply(path: str) -> dict[str, torch.Tensor | bool]:
     """The raw 3DGS parameters of a ``point_cloud.ply`` (float64): ``means [N,3]``, ``quats [N,4]``,
-    ``log_scales [N,3]``, ``opacity_logits [N]``, ``sh [N,K,3]``."""
+    ``log_scales [N,3]``, ``opacity_logits [N]``, ``sh [N,K,3]``; and ``antialiased``: whether the header has
+    the comment ``SplatRenderMode: mip`` (gsplat's and Brush's mark of a file for the antialiased mode)."""
     import numpy as np
     from plyfile import PlyData
-    v = PlyData.read(str(path))["vertex"]
+    ply = PlyData.read(str(path))
+    v = ply["vertex"]
     names = v.data.dtype.names
 
     def cols(keys):
@@ -82,7 +84,8 @@ def gaussians_of_ply(path: str) -> dict[str, torch.Tensor]:
     f_rest = cols(rest).reshape(N, 3, len(rest) // 3).transpose(1, 2) if rest else f_dc.new_zeros(N, 0, 3)
     return {"means": cols(["x", "y", "z"]), "quats": cols([f"rot_{i}" for i in range(4)]),
             "log_scales": cols([f"scale_{i}" for i in range(3)]), "opacity_logits": cols(["opacity"])[:, 0],
-            "sh": torch.cat([f_dc[:, None], f_rest], 1)}
+            "sh": torch.cat([f_dc[:, None], f_rest], 1),
+            "antialiased": any(c.strip().lower() == "splatrendermode: mip" for c in ply.comments)}
 
 
 @torch.no_grad()

@@ -145,7 +145,27 @@ def test_export_unknown_format_and_unwritable_path_are_refused(run, tmp_path, ca
         locked.chmod(0o700)
     _one_line_error(capsys, ["export", "--run", str(run), "--format", "ply", "--out", str(tmp_path)],
                     "--out", "is a folder")
+    missing = tmp_path / "no_such_folder" / "point_cloud.ply"
+    _one_line_error(capsys, ["export", "--run", str(run), "--format", "3dgs", "--out", str(missing)],
+                    "--out", str(missing), "does not exist")
+    assert not missing.parent.exists()
+    # a folder no file can be created in, whoever runs this: /proc refuses new files even to root
+    _one_line_error(capsys, ["export", "--run", str(run), "--format", "3dgs", "--out", "/proc/point_cloud.ply"],
+                    "--out", "/proc/point_cloud.ply", "cannot be written")
+    _one_line_error(capsys, ["export", "--run", str(run), "--format", "ply", "--antialiased"],
+                    "--format ply", "--antialiased")
+    _one_line_error(capsys, ["export", "--run", str(run), "--format", "3dgs", "--fit-epochs", "-1"],
+                    "--fit-epochs", "-1")
     assert _snapshot(run) == before
+
+
+def test_export_whose_default_folder_cannot_be_made_is_refused(run, tmp_path, capsys):
+    """The default output (RUN/export/…) when RUN/export is a file: refused before any work, naming the path."""
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    (copy / "export").write_text("not a folder")
+    _one_line_error(capsys, ["export", "--run", str(copy), "--format", "3dgs"], "export path",
+                    str(copy / "export" / "point_cloud.ply"), "is a file, not a folder")
 
 
 def _ply_config(tmp_path: Path, ply: Path) -> Path:

@@ -134,7 +134,8 @@ def _ply_scene(cfg: Config, path: Path, train: PosedViews, device: torch.device,
       positions, normals, tangent std-devs, opacities and the colour up to ``geometry.sh_degree`` (the mean
       colour without view dependence when ``geometry.optim.shading`` is ``none``); opacities and std-devs
       converted from 3DGS's kernel to nsplat's over the training cameras ``train`` with ``render.lowpass``
-      (:func:`nsplat.gaussian_kernel.from_gaussian`, the inverse of the export's conversion);
+      (:func:`nsplat.gaussian_kernel.surfels_of_gaussians`, the inverse of the export's conversion; an
+      antialiased file's header comments fold its per-view compensation in);
     * any other point cloud with ``x y z`` (a scanner's): its normals or, without them, plane fits of the
       ``geometry.sfm.k`` nearest neighbours; its colours or grey; std-devs from the point spacing
       (``geometry.scale_factor``), opacity ``geometry.init_opacity``.
@@ -161,12 +162,13 @@ def _ply_scene(cfg: Config, path: Path, train: PosedViews, device: torch.device,
         features[:, :min(channels, gs["features"].shape[1])] = gs["features"][keep][:, :channels]
         if g.optim.shading == "none":
             features = features.clamp(0.0, 1.0)
-        log.info("3DGS PLY: %d of %d Gaussians as surfels (file SH degree %d, %d colour channels)", len(keep),
-                 gs["means"].shape[0], gs["degree"], channels)
+        log.info("3DGS PLY: %d of %d Gaussians as surfels (file SH degree %d, %d colour channels, %s)", len(keep),
+                 gs["means"].shape[0], gs["degree"], channels, "antialiased" if gs["antialiased"] else "classic")
         means, normals = gs["means"][keep], gs["normals"][keep]
         scales, opacities = surfels_of_gaussians(means, normals, gs["scales"][keep], gs["opacities"][keep],
                                                  train.viewmats.cpu(), train.Ks.cpu(), train.width, train.height,
-                                                 lowpass=cfg.render.lowpass, near=cfg.render.near, far=cfg.render.far)
+                                                 lowpass=cfg.render.lowpass, near=cfg.render.near, far=cfg.render.far,
+                                                 antialiased=bool(gs["antialiased"]))
         rows = {k: v.float().to(device) for k, v in
                 (("means", means), ("normals", normals), ("scales", scales), ("opacities", opacities))}
         return SurfelScene.from_points(scfg, rows["means"], rows["normals"], scales=rows["scales"].clamp_min(1e-9),
