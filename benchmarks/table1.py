@@ -9,7 +9,7 @@ interrupted one resumes from its checkpoint). Methods, all with the same data, i
 * ``sampled``   — the sampled op with plain autograd through the sample (the authors' released code);
 * ``truncated`` — a deterministic renderer with kernels cut at 3σ, exact compositing (DSS/2DGS-like).
 
-Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe, about 20 minutes a run),
+Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe, 4-8 minutes a run),
 ``cpu`` (default; the earlier budget of 32² images and 80 steps, see docs/results.md),
 ``cpu-long`` (the same with 48 views and 400 steps: how the comparison moves with optimisation time) or
 ``paper`` (124 views, 300 epochs, batch 12, lr 0.01, repositioning every epoch; for a big machine).
@@ -65,7 +65,7 @@ def learning_rate(lr: float) -> list[str]:
 
 #: Log cadences are in steps: ``validate`` = shape metrics every 5 or 10 epochs of ``views / batch`` steps.
 SETTINGS = {
-    # the shipped configs as they are: the CPU recipe (about 20 minutes a run on 2 cores)
+    # the shipped configs as they are: the CPU recipe (4-8 minutes a run on 2 cores)
     "recipe": [],
     "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
             *learning_rate(0.03), "optim.reposition.every=5", "log.validate=20", "log.checkpoint=4"],
