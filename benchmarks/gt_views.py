@@ -34,8 +34,8 @@ def measure(shape: str, overrides: list[str], dense: bool) -> dict:
     with tempfile.TemporaryDirectory(prefix="nsplat-gt-") as cache:
         data.cache_dir = cache
         t0, c0 = time.perf_counter(), time.process_time()
-        images, _, _ = cached_gt_images(pc, data, rc, data.views)
-        held, _, _ = cached_gt_images(pc, data, rc, max(cfg.renders, 1), offset=HELDOUT_OFFSET, tag="heldout")
+        images, _, _, _ = cached_gt_images(pc, data, rc, data.views)
+        held, _, _, _ = cached_gt_images(pc, data, rc, max(cfg.renders, 1), offset=HELDOUT_OFFSET, tag="heldout")
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     row = {"shape": shape, "points": pc.points.shape[0], "views": data.views, "heldout": max(cfg.renders, 1),
            "resolution": [data.width, data.height], "gt_tol": data.gt_tol, "wall_s": wall, "cpu_s": cpu}

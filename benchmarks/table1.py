@@ -9,7 +9,10 @@ interrupted one resumes from its checkpoint). Methods, all with the same data, i
 * ``sampled``   — the sampled op with plain autograd through the sample (the authors' released code);
 * ``truncated`` — a deterministic renderer with kernels cut at 3σ, exact compositing (DSS/2DGS-like).
 
-Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe, 4-8 minutes a run),
+``--seeds 3`` runs ``ht`` and ``sampled`` with 3 seeds (the table shows mean ± std) and the others with one.
+
+Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe, about 5 minutes a run),
+``recipe-64`` (the recipe at 64², about 2 minutes a run),
 ``cpu`` (default; the earlier budget of 32² images and 80 steps, see docs/results.md),
 ``cpu-long`` (the same with 48 views and 400 steps: how the comparison moves with optimisation time) or
 ``paper`` (124 views, 300 epochs, batch 12, lr 0.01, repositioning every epoch; for a big machine).
@@ -65,8 +68,10 @@ def learning_rate(lr: float) -> list[str]:
 
 #: Log cadences are in steps: ``validate`` = shape metrics every 5 or 10 epochs of ``views / batch`` steps.
 SETTINGS = {
-    # the shipped configs as they are: the CPU recipe (4-8 minutes a run on 2 cores)
+    # the shipped configs as they are: the CPU recipe (about 5 minutes a run on 2 cores)
     "recipe": [],
+    # the recipe at 64x64 (about 2 minutes a run): Table 1's method comparison within this session's CPU time
+    "recipe-64": ["data.width=64", "data.height=64", "init.grid=64"],
     "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
             *learning_rate(0.03), "optim.reposition.every=5", "log.validate=20", "log.checkpoint=4"],
     # the cpu budget with 5x the steps and twice the views: how the comparison moves with optimisation time
@@ -134,14 +139,16 @@ def prepare_gt(jobs: list[tuple[str, str, list[str]]], args: argparse.Namespace)
         cached_gt_images(pc, cfg.data, cfg.render, cfg.renders, offset=1_000_000, tag="heldout")
 
 
-def run_all(jobs: list[tuple[str, str, list[str]]], table: str, args: argparse.Namespace) -> list[dict]:
-    """Run ``(name, shape, overrides)`` jobs with ``args.jobs`` processes in parallel."""
+def run_all(jobs: list[tuple], table: str, args: argparse.Namespace) -> list[dict]:
+    """Run ``(name, shape, overrides[, seed])`` jobs (seed: ``args.seed`` when absent) with ``args.jobs``
+    processes in parallel."""
     setting = SETTINGS[args.setting]
     if not args.collect_only:
-        prepare_gt(jobs, args)
+        prepare_gt([job[:3] for job in jobs], args)
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        futures = [pool.submit(run_one, name, shape, setting + ov + list(args.override), f"{table}-{args.setting}",
-                               args.device, args.seed, args.threads, args.collect_only) for name, shape, ov in jobs]
+        futures = [pool.submit(run_one, job[0], job[1], setting + job[2] + list(args.override),
+                               f"{table}-{args.setting}", args.device, job[3] if len(job) > 3 else args.seed,
+                               args.threads, args.collect_only) for job in jobs]
         return [f.result() for f in futures]
 
 
@@ -157,6 +164,8 @@ def common_args(description: str) -> argparse.Namespace:
     p.add_argument("--shapes", nargs="+", choices=SHAPES, default=list(SHAPES), help="shapes to run (Table 1 only)")
     p.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(METHODS),
                    help="methods to run (Table 1 only)")
+    p.add_argument("--seeds", type=int, default=1,
+                   help="Table 1: seeds --seed … --seed+N-1 for ht and sampled (mean ± std); the others run --seed")
     p.add_argument("override", nargs="*", help="extra config overrides for every run (key=value)")
     return p.parse_args()
 
@@ -164,7 +173,7 @@ def common_args(description: str) -> argparse.Namespace:
 def write_json(name: str, args: argparse.Namespace, rows: list[dict], extra: dict | None = None) -> Path:
     """``benchmarks/results/<name>-<setting>.json`` of a reconstruction table (:func:`benchmarks.common.write_result`)."""
     payload = {"setting": args.setting, "overrides": SETTINGS[args.setting] + list(args.override),
-               "seed": args.seed, "rows": rows, **(extra or {})}
+               "seed": args.seed, "seeds": getattr(args, "seeds", 1), "rows": rows, **(extra or {})}
     return write_result(f"{name}-{args.setting}", payload)
 
 
@@ -172,31 +181,51 @@ def fmt(x: float) -> str:
     return f"{x:.4f}" if x >= 1e-3 else f"{x:.2e}"
 
 
+#: Methods run with every seed of ``--seeds`` (the others with the first).
+MULTI_SEED = ("ht", "sampled")
+KEYS = ("hausdorff", "chamfer", "hausdorff_sq", "chamfer_sq")
+
+
+def run_name(shape: str, method: str, seed: int, first: int) -> str:
+    """A run's folder name: ``<shape>-<method>`` for the first seed, ``…-s<seed>`` for the others."""
+    return f"{shape}-{method}" if seed == first else f"{shape}-{method}-s{seed}"
+
+
+def pm(values: list[float]) -> str:
+    """``mean ± std`` (sample std) of ``values``, or the one value."""
+    if len(values) == 1:
+        return fmt(values[0])
+    return f"{fmt(float(np.mean(values)))} ± {fmt(float(np.std(values, ddof=1)))}"
+
+
 def main() -> None:
     args = common_args(__doc__.splitlines()[0])
-    jobs = [(f"{shape}-{method}", shape, ov) for shape in args.shapes for method, ov in METHODS.items()
-            if method in args.methods]
+    seeds = {m: range(args.seed, args.seed + (args.seeds if m in MULTI_SEED else 1)) for m in METHODS}
+    jobs = [(run_name(shape, method, seed, args.seed), shape, ov, seed) for shape in args.shapes
+            for method, ov in METHODS.items() if method in args.methods for seed in seeds[method]]
     rows = [r for r in run_all(jobs, "table1", args) if r is not None]
     by = {r["name"]: r for r in rows}
+    runs = {(shape, m): [by[n] for n in (run_name(shape, m, s, args.seed) for s in seeds[m]) if n in by]
+            for shape in args.shapes for m in METHODS}
+    mean = {key: {k: float(np.mean([r[k] for r in rs])) for k in KEYS} for key, rs in runs.items() if rs}
     ratios = {}
-    lines = ["| shape | method | HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | init CD | time s |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| shape | method | seeds | HD (plain) | CD (plain) | HD² (authors) | CD² (authors) | init CD | "
+             "held-out PSNR | time s |", "|---|---|---|---|---|---|---|---|---|---|"]
     for shape in args.shapes:
         for method in METHODS:
-            r = by.get(f"{shape}-{method}")
-            if r is None:
-                lines.append(f"| {shape} | {method} | not run | | | | | |")
+            rs = runs[(shape, method)]
+            if not rs:
+                lines.append(f"| {shape} | {method} | 0 | not run | | | | | | |")
                 continue
-            lines.append(f"| {shape} | {method} | {fmt(r['hausdorff'])} | {fmt(r['chamfer'])} | "
-                         f"{fmt(r['hausdorff_sq'])} | {fmt(r['chamfer_sq'])} | {fmt(r['init']['chamfer'])} | "
-                         f"{r['wall_s']:.0f} |")
-        ht = by.get(f"{shape}-ht")
-        if ht is None:
+            psnr = [r["heldout_psnr"] for r in rs if "heldout_psnr" in r]
+            lines.append(f"| {shape} | {method} | {len(rs)} | " + " | ".join(pm([r[k] for r in rs]) for k in KEYS)
+                         + f" | {fmt(rs[0]['init']['chamfer'])} | {f'{np.mean(psnr):.2f}' if psnr else '–'} | "
+                         f"{np.mean([r['wall_s'] for r in rs]):.0f} |")
+        if (shape, "ht") not in mean:
             continue
-        ratios[shape] = {m: {k: by[f"{shape}-{m}"][k] / ht[k] for k in ("hausdorff", "chamfer", "hausdorff_sq",
-                                                                         "chamfer_sq")}
-                         for m in METHODS if m != "ht" and f"{shape}-{m}" in by}
-    lines += ["", "Ratio baseline / ht (> 1: ht better; target ≥ 2.8):", "",
+        ratios[shape] = {m: {k: mean[(shape, m)][k] / mean[(shape, "ht")][k] for k in KEYS}
+                         for m in METHODS if m != "ht" and (shape, m) in mean}
+    lines += ["", "Ratio baseline / ht of the seed means (> 1: ht better; the paper's claim: ≥ 2.8):", "",
               "| shape | baseline | HD | CD | HD² | CD² |", "|---|---|---|---|---|---|"]
     for shape, per in ratios.items():
         for m, r in per.items():

@@ -215,6 +215,28 @@ def test_repositioning_checks_every_epoch_but_the_last(tmp_path, monkeypatch):
     assert len(calls) == 1  # after epoch 2; not after the last (4)
 
 
+def test_relative_threshold_moves_points_far_below_the_median(tmp_path, monkeypatch):
+    """``reposition.relative``: a point contributes when it reaches ``relative`` × the median contribution (and
+    ``min_weight``); points hidden just behind the surface, above ``min_weight`` but far below the median, move."""
+    import nsplat.fitting.reposition as rp
+    _, images, vm, Ks, scene = _tiny_problem(n=60, views=4, res=12)
+    contrib = torch.full((60,), 10.0)
+    contrib[:7] = 1.0            # hidden-ish: above min_weight, a tenth of the median
+    contrib[7:9] = 0.01          # below min_weight
+    monkeypatch.setattr(rp, "point_contributions", lambda scene, *a, **k: contrib.clone())
+    moved: list[int] = []
+    real = rp.reposition
+    monkeypatch.setattr(rp, "reposition", lambda *a, **k: moved.append(real(*a, **k)) or moved[-1])
+    for relative, expect in ((0.0, 2), (0.2, 9)):
+        moved.clear()
+        cfg = FitConfig(epochs=2, batch=2, learn=_lr(0.01), reposition=RepositionConfig(every=1, relative=relative))
+        fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / str(relative),
+            log=LogConfig(checkpoint=100, progress=False))
+        assert moved == [expect], (relative, moved)
+    with pytest.raises(ConfigError, match="reposition.relative"):
+        RepositionConfig(relative=1.0)
+
+
 class _Interrupt(Exception):
     pass
 

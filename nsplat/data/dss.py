@@ -34,7 +34,7 @@ from nsplat.shading import lambert
 
 log = logging.getLogger(__name__)
 #: Bumped when ground-truth rendering changes, so stale caches are not reused.
-GT_VERSION = 2
+GT_VERSION = 3
 #: Views rendered per call of the tiled renderer (then cached one file each).
 GT_CHUNK = 4
 #: Index offset of the held-out views (disjoint from any training set).
@@ -107,16 +107,18 @@ def gt_scene(pc: PointCloud, data: DataConfig) -> dict[str, torch.Tensor]:
 
 def render_gt(pc: PointCloud, data: DataConfig, viewmats: torch.Tensor, Ks: torch.Tensor,
               render_cfg: RenderConfig) -> torch.Tensor:
-    """GT images ``[B,H,W,3]`` (Lambert, black background) with :func:`nsplat.ops.splat_tiled` at ``data.gt_tol``."""
+    """GT images with their coverage, ``[B,H,W,4]`` (RGB: Lambert on a black background; A: the accumulated
+    opacity), rendered with :func:`nsplat.ops.splat_tiled` at ``data.gt_tol``."""
     gt = gt_scene(pc, data)
     shaded = lambert(gt["albedo"], gt["normals"], viewmats)
-    return splat_tiled(gt["means"], gt["normals"], gt["scales"], gt["opacities"], shaded, viewmats, Ks, data.width,
-                       data.height, tol=data.gt_tol, near=render_cfg.near, far=render_cfg.far,
-                       lowpass=render_cfg.lowpass).image
+    out = splat_tiled(gt["means"], gt["normals"], gt["scales"], gt["opacities"], shaded, viewmats, Ks, data.width,
+                      data.height, tol=data.gt_tol, near=render_cfg.near, far=render_cfg.far,
+                      lowpass=render_cfg.lowpass)
+    return torch.cat([out.image, out.alpha], -1)
 
 
 def cache_folder(data: DataConfig, render_cfg: RenderConfig, tag: str) -> Path:
-    """The folder caching one GT view a file (``<index>.pt``, ``[H,W,3]``) of this data, render and ``tag``."""
+    """The folder caching one GT view a file (``<index>.pt``, RGBA ``[H,W,4]``) of this data, render and ``tag``."""
     key = json.dumps({"v": GT_VERSION, "tag": tag, "shape": str(data.shape), "root": str(data.root),
                       "w": data.width, "h": data.height, "fov": data.fov_deg, "dist": data.distance,
                       "seed": data.view_seed, "gs": data.gt_scale, "ga": data.gt_albedo, "tol": data.gt_tol,
@@ -127,18 +129,20 @@ def cache_folder(data: DataConfig, render_cfg: RenderConfig, tag: str) -> Path:
 
 
 def cached_views(data: DataConfig, render_cfg: RenderConfig, count: int, tag: str = "train") -> torch.Tensor | None:
-    """The first ``count`` cached GT images ``[count,H,W,3]`` of ``tag``, or ``None`` if any is missing."""
+    """The first ``count`` cached GT images ``[count,H,W,3]`` (RGB) of ``tag``, or ``None`` if any is missing."""
     folder = cache_folder(data, render_cfg, tag)
     paths = [folder / f"{i}.pt" for i in range(count)]
     if not all(p.is_file() for p in paths):
         return None
-    return torch.stack([torch.load(p, weights_only=True) for p in paths])
+    return torch.stack([torch.load(p, weights_only=True)[..., :3] for p in paths])
 
 
 def cached_gt_images(pc: PointCloud, data: DataConfig, render_cfg: RenderConfig, count: int,
-                     offset: int = 0, tag: str = "train") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(images [count,H,W,3], viewmats, Ks)`` of views ``offset … offset+count-1``. Views not yet cached are
-    rendered ``GT_CHUNK`` at a time under a progress bar, each written to the cache (atomically) as it comes."""
+                     offset: int = 0, tag: str = "train"
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(images [count,H,W,3], masks [count,H,W], viewmats, Ks)`` of views ``offset … offset+count-1``: the RGB
+    images and their coverage (the GT's accumulated opacity). Views not yet cached are rendered ``GT_CHUNK`` at a
+    time under a progress bar, each written to the cache (atomically) as it comes."""
     viewmats, Ks = view_cameras(count, pc, data, offset)
     folder = cache_folder(data, render_cfg, tag)
     paths = [folder / f"{i}.pt" for i in range(count)]
@@ -154,15 +158,16 @@ def cached_gt_images(pc: PointCloud, data: DataConfig, render_cfg: RenderConfig,
                 for i, image in zip(chunk, images):
                     atomic_write(paths[i], lambda fh, im=image: torch.save(im.clone(), fh))
                 bar.update(len(chunk))
-    images = torch.stack([torch.load(p, weights_only=True) for p in paths])
-    return images, viewmats, Ks
+    rgba = torch.stack([torch.load(p, weights_only=True) for p in paths])
+    return rgba[..., :3].contiguous(), rgba[..., 3].contiguous(), viewmats, Ks
 
 
 def gt_views(pc: PointCloud, data: DataConfig, render_cfg: RenderConfig, count: int, *,
              heldout: bool = False) -> PosedViews:
-    """The first ``count`` training views (or held-out views) of ``pc`` as :class:`PosedViews` (CPU)."""
+    """The first ``count`` training views (or held-out views) of ``pc`` as :class:`PosedViews` (CPU), with the
+    GT coverage as ``masks``."""
     tag, offset = ("heldout", HELDOUT_OFFSET) if heldout else ("train", 0)
-    images, viewmats, Ks = cached_gt_images(pc, data, render_cfg, count, offset=offset, tag=tag)
-    return PosedViews(images, viewmats, Ks, [f"{tag}_{offset + i}" for i in range(count)])
+    images, masks, viewmats, Ks = cached_gt_images(pc, data, render_cfg, count, offset=offset, tag=tag)
+    return PosedViews(images, viewmats, Ks, [f"{tag}_{offset + i}" for i in range(count)], masks=masks)
 
 

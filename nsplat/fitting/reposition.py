@@ -13,7 +13,7 @@ from typing import Literal
 import torch
 
 from nsplat import distributed
-from nsplat.config import require_fields
+from nsplat.config import require, require_fields
 from nsplat.engine import op_seed
 from nsplat.fitting.strategy import FitState, Strategy
 from nsplat.ops import tangent_frame
@@ -37,7 +37,10 @@ class RepositionConfig:
             (:func:`nsplat.ops.tiled.point_weights_tiled`, no sampling) instead of the sampled op's estimate. A
             sample composites only the points it drew, so a point hidden behind a surface can show through it and
             count as contributing; with exact weights it counts as hidden and moves to the surface.
-        min_weight: a point contributes when its contribution summed over all views is at least this.
+        min_weight: a point contributes when its contribution summed over all views is at least this and at
+            least ``relative`` × the median contribution.
+        relative: the relative part of that threshold (0: absolute only). With untruncated kernels a point hidden
+            just behind the surface still contributes a little, never nothing; a relative threshold moves it too.
         jitter: tangent offset of a moved point, in units of its source point's std-dev.
     """
 
@@ -46,10 +49,12 @@ class RepositionConfig:
     contribution: Literal["radiance", "weight"] = "radiance"
     exact: bool = False
     min_weight: float = 0.02
+    relative: float = 0.0
     jitter: float = 1.0
 
     def __post_init__(self) -> None:
         require_fields(self, every=">=1", min_weight=">=0", jitter=">=0")
+        require(0 <= self.relative < 1, "reposition.relative", "a value in [0, 1)", self.relative)
 
 
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -151,5 +156,6 @@ class Reposition(Strategy):
                                       measure=self.cfg.contribution, shading=fit.shading,
                                       part=(distributed.rank(), distributed.world_size()), exact=self.cfg.exact)
         contrib = distributed.all_reduce_sum(contrib)
-        moved = reposition(fit.scene, contrib, self.cfg.min_weight, self.cfg.jitter, fit.generator, fit.optimizer)
+        threshold = max(self.cfg.min_weight, self.cfg.relative * float(contrib.median()))
+        moved = reposition(fit.scene, contrib, threshold, self.cfg.jitter, fit.generator, fit.optimizer)
         return {"epoch/moved": float(moved)}

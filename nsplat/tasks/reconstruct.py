@@ -1,7 +1,8 @@
 """Task ``reconstruct``: shape reconstruction from images (paper §4, Tables 1–3).
 
-Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`). Init: a Fibonacci sphere
-enclosing the object. Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
+Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`), with their coverage. Init
+(``init.kind``): the surface of the training views' visual hull, or a Fibonacci sphere enclosing the object (the
+paper's). Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder: ``metrics.json`` (Hausdorff/Chamfer, both
 definitions, see :mod:`nsplat.metrics`), ``reconstruction.ply``, ``renders/*.png`` (GT | result).
 Data-parallel under torchrun (the fitter's, docs/distributed.md); rank 0 writes the outputs.
 """
@@ -24,9 +25,12 @@ from nsplat.checkpoint import load_checkpoint
 from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.dss import DataConfig, cached_views, gt_views, view_cameras
 from nsplat.data.pointclouds import PointCloud, load_shape
+from nsplat.data.views import PosedViews
+from nsplat.data.visual_hull import hull_points
 from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
 from nsplat.fitting import FitConfig, fit
 from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
+from nsplat.metrics_image import psnr
 from nsplat.ops import splat_tiled
 from nsplat.render import RenderConfig
 from nsplat.report import results
@@ -39,23 +43,35 @@ from nsplat.view_model import TrainingCameras, ViewModel, surfel_view
 DISTRIBUTED = True
 
 
+INIT_KINDS = ("sphere", "hull")
+
+
 @dataclasses.dataclass
 class InitConfig:
-    """Initial surfels: a Fibonacci sphere about the object's centre.
+    """Initial surfels.
 
     Attributes:
+        kind: ``sphere`` (the paper's: a Fibonacci sphere about the object's centre) or ``hull`` (points on the
+            surface of the visual hull carved by the training views' coverage, :func:`hull_init`).
         count: number of points (null = the GT point count). radius: sphere radius in units of the
-        enclosing-sphere radius. albedo: initial grey albedo. scale: initial std-dev in units of the
-        sphere's mean 3-NN spacing.
+            enclosing-sphere radius (``sphere``; ``hull``: the half-width of the carved cube). albedo: initial grey
+            albedo. scale: initial std-dev in units of the points' mean 3-NN spacing.
+        grid: ``hull``: voxels per side of the carved cube. alpha_threshold: ``hull``: coverage at which a pixel
+            is inside the silhouette.
     """
 
+    kind: str = "sphere"
     count: int | None = None
     radius: float = 1.1
     albedo: float = 0.5
     scale: float = 1.0
+    grid: int = 64
+    alpha_threshold: float = 0.5
 
     def __post_init__(self) -> None:
-        require_fields(self, count=">=1", radius=">0", albedo="unit", scale=">0")
+        require(self.kind in INIT_KINDS, "init.kind", f"one of {INIT_KINDS}", self.kind)
+        require_fields(self, count=">=1", radius=">0", albedo="unit", scale=">0", grid=">=2")
+        require(0 < self.alpha_threshold < 1, "init.alpha_threshold", "a value in (0, 1)", self.alpha_threshold)
 
 
 @dataclasses.dataclass
@@ -69,7 +85,8 @@ class Config:
         render: the render settings (:class:`nsplat.render.RenderConfig`). optim: the fitter
             (:class:`nsplat.fitting.FitConfig`; Lambert shading). log: the cadences, ``log.validate`` the steps
             between shape metrics (TensorBoard; :class:`nsplat.engine.LogConfig`).
-        renders: held-out views rendered to PNG at the end (>= 0).
+        heldout: held-out views scored at the end (``heldout_psnr`` in ``metrics.json``: the image metric to
+            select a recipe on, the GT cloud being the test). renders: the first this many of them written to PNG.
     """
 
     task: str = "reconstruct"
@@ -80,11 +97,13 @@ class Config:
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: FitConfig = dataclasses.field(default_factory=FitConfig)
     log: LogConfig = dataclasses.field(default_factory=LogConfig)
+    heldout: int = 12
     renders: int = 3
 
     def __post_init__(self) -> None:
         require(self.task == "reconstruct", "task", "'reconstruct'", self.task)
-        require_fields(self, seed=">=0", renders=">=0")
+        require_fields(self, seed=">=0", heldout=">=1", renders=">=0")
+        require(self.renders <= self.heldout, "renders", f"at most heldout ({self.heldout})", self.renders)
         if self.scene.channels != 3:
             raise ConfigError(f"scene.channels: the reconstruct task shades RGB albedo, expected 3, "
                               f"got {self.scene.channels}")
@@ -102,12 +121,42 @@ def fibonacci_sphere(count: int, centre: torch.Tensor, radius: float) -> tuple[t
     return (centre.double() + radius * n).float(), n.float()
 
 
-def init_scene(pc: PointCloud, cfg: Config) -> SurfelScene:
-    """The initial scene: ``init.count`` points on a sphere of radius ``init.radius ×`` the enclosing radius."""
+def hull_init(views: PosedViews, count: int, centre: torch.Tensor, half_width: float, grid: int,
+              alpha_threshold: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(points [count,3], outward normals [count,3])`` on the visual hull of ``views`` (their ``masks``).
+
+    The cube ``centre ± half_width`` is carved into ``grid³`` voxels (:func:`nsplat.data.visual_hull.hull_points`,
+    silhouettes not dilated); the points are the surface voxels' centres, a random subset when there are more than
+    ``count``, each repeated voxel moved by a uniform offset in its tangent plane (within the voxel) when fewer.
+    """
+    c = centre.double()
+    bbox = tuple((c - half_width).tolist() + (c + half_width).tolist())
+    hp = hull_points(views.to("cpu"), bbox, grid, alpha_threshold=alpha_threshold, dilate=0, min_seen=0.5)
+    gen = torch.Generator().manual_seed(seed)
+    n = hp.means.shape[0]
+    pick = torch.randperm(n, generator=gen)[:count]
+    if count > n:
+        pick = torch.cat([pick, torch.randint(n, (count - n,), generator=gen)])
+    means, normals = hp.means[pick].double(), hp.normals[pick].double()
+    offset = (torch.rand(count, 3, generator=gen, dtype=torch.float64) - 0.5) * hp.voxel
+    offset[: min(n, count)] = 0.0
+    offset -= (offset * normals).sum(-1, keepdim=True) * normals
+    return (means + offset).float(), normals.float()
+
+
+def init_scene(pc: PointCloud, cfg: Config, views: PosedViews | None = None, seed: int = 0) -> SurfelScene:
+    """The initial scene: ``init.count`` points on a sphere of radius ``init.radius ×`` the enclosing radius
+    (``init.kind: sphere``) or on the visual hull of ``views`` (``hull``; :func:`hull_init`)."""
     count = cfg.init.count if cfg.init.count is not None else pc.points.shape[0]
     if count < 4:
         raise ConfigError(f"init.count: expected >= 4, got {count}")
-    means, normals = fibonacci_sphere(count, pc.center, cfg.init.radius * pc.radius)
+    if cfg.init.kind == "hull":
+        if views is None or views.masks is None:
+            raise ConfigError("init.kind: 'hull' needs training views with coverage masks")
+        means, normals = hull_init(views, count, pc.center, cfg.init.radius * pc.radius, cfg.init.grid,
+                                   cfg.init.alpha_threshold, seed)
+    else:
+        means, normals = fibonacci_sphere(count, pc.center, cfg.init.radius * pc.radius)
     return SurfelScene.from_points(cfg.scene, means, normals, features=cfg.init.albedo, scale_factor=cfg.init.scale)
 
 
@@ -123,7 +172,7 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
     t0, c0 = time.time(), time.process_time()
     pc = load_shape(cfg.data.shape, cfg.data.root or None)
     views = gt_views(pc, cfg.data, cfg.render, cfg.data.views).to(ctx.device)
-    scene = init_scene(pc, cfg).to(ctx.device)
+    scene = init_scene(pc, cfg, views, seed=ctx.seed).to(ctx.device)
     init_metrics = point_cloud_distances(scene.means, pc.points)
 
     def validate(done: int, writer: Any) -> dict[str, float]:
@@ -138,15 +187,17 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
     metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("train/loss"),
                    fit_seconds=time.time() - t0, cpu_seconds=time.process_time() - c0)
     write_json(ctx.run_dir / "metrics.json", metrics)
-    results.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)", metrics["chamfer"], metrics["chamfer_sq"],
-             metrics["hausdorff"], metrics["hausdorff_sq"])
+    results.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)  held-out PSNR %.2f dB", metrics["chamfer"],
+                 metrics["chamfer_sq"], metrics["hausdorff"], metrics["hausdorff_sq"], metrics["heldout_psnr"])
     return metrics
 
 
 def _finish(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) -> dict:
     scene.save_ply(ctx.run_dir / "reconstruction.ply")
-    write_renders(cfg, ctx, pc, scene)
+    held, rec = render_heldout(cfg, pc, scene)
+    write_renders(cfg, ctx, pc, scene, held, rec)
     m = point_cloud_distances(scene.means.detach().cpu(), pc.points)
+    m["heldout_psnr"] = float(psnr(rec.clamp(0, 1), held.images).mean())
     return {"shape": cfg.data.shape, "renderer": cfg.render.renderer, "estimator": cfg.render.estimator,
             "samples": cfg.render.samples, "views": cfg.data.views, "epochs": cfg.optim.epochs,
             "resolution": [cfg.data.width, cfg.data.height], "points": scene.num_points, "seed": ctx.seed, **m}
@@ -160,21 +211,30 @@ def restore(cfg: Config, ctx: RunContext) -> SurfelScene:
     return t.modules["scene"].to(ctx.device)
 
 
-def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene) -> list[Path]:
-    """PNGs ``renders/view_<i>.png`` of ``cfg.renders`` held-out views: GT | reconstruction, both rendered with
-    :func:`nsplat.ops.splat_tiled` at ``data.gt_tol`` (the dense oracle's image to that tolerance); and
-    ``renders/points.png``, a scatter plot of both clouds."""
-    if cfg.renders < 1:
-        return []
-    held = gt_views(pc, cfg.data, cfg.render, cfg.renders, heldout=True)
-    folder = ctx.run_dir / "renders"
-    folder.mkdir(parents=True, exist_ok=True)
-    sc = scene.cpu()
+def render_heldout(cfg: Config, pc: PointCloud, scene: SurfelScene) -> tuple[PosedViews, torch.Tensor]:
+    """The ``cfg.heldout`` held-out GT views and the scene's images of them ``[B,H,W,3]`` (CPU), rendered as the GT
+    is: :func:`nsplat.ops.splat_tiled` at ``data.gt_tol`` (the dense oracle's image to that tolerance)."""
+    held = gt_views(pc, cfg.data, cfg.render, cfg.heldout, heldout=True)
     with torch.no_grad():
-        shaded = lambert(sc.features, sc.normals, held.viewmats)
-        rec = splat_tiled(sc.means, sc.normals, sc.scales, sc.opacities, shaded, held.viewmats, held.Ks, cfg.data.width,
+        means, normals, scales, opacities, features = (t.detach().cpu() for t in (
+            scene.means, scene.normals, scene.scales, scene.opacities, scene.features))
+        shaded = lambert(features, normals, held.viewmats)
+        rec = splat_tiled(means, normals, scales, opacities, shaded, held.viewmats, held.Ks, cfg.data.width,
                           cfg.data.height, tol=cfg.data.gt_tol, near=cfg.render.near, far=cfg.render.far,
                           lowpass=cfg.render.lowpass, backface_cull=cfg.render.backface_cull).image
+    return held, rec
+
+
+def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelScene,
+                  held: PosedViews | None = None, rec: torch.Tensor | None = None) -> list[Path]:
+    """PNGs ``renders/view_<i>.png`` of the first ``cfg.renders`` held-out views: GT | reconstruction
+    (:func:`render_heldout`, unless given); and ``renders/points.png``, a scatter plot of both clouds."""
+    if cfg.renders < 1:
+        return []
+    if held is None or rec is None:
+        held, rec = render_heldout(cfg, pc, scene)
+    folder = ctx.run_dir / "renders"
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for b in range(cfg.renders):
         pair = torch.cat([held.images[b], rec[b]], 1).clamp(0, 1)
@@ -182,7 +242,6 @@ def write_renders(cfg: Config, ctx: RunContext, pc: PointCloud, scene: SurfelSce
         iio.imwrite(p, (pair.numpy() * 255).round().astype(np.uint8))
         paths.append(p)
     paths.append(write_point_plot(folder / "points.png", scene.means.detach().cpu(), pc))
-    scene.to(ctx.device)
     return paths
 
 
