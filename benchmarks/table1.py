@@ -201,8 +201,8 @@ def pm(values: list[float]) -> str:
 def main() -> None:
     args = common_args(__doc__.splitlines()[0])
     seeds = {m: range(args.seed, args.seed + (args.seeds if m in MULTI_SEED else 1)) for m in METHODS}
-    jobs = [(run_name(shape, method, seed, args.seed), shape, ov, seed) for shape in args.shapes
-            for method, ov in METHODS.items() if method in args.methods for seed in seeds[method]]
+    jobs = [(run_name(shape, method, seed, args.seed), shape, ov, seed) for seed in range(args.seed, args.seed + args.seeds)
+            for shape in args.shapes for method, ov in METHODS.items() if method in args.methods and seed in seeds[method]]
     rows = [r for r in run_all(jobs, "table1", args) if r is not None]
     by = {r["name"]: r for r in rows}
     runs = {(shape, m): [by[n] for n in (run_name(shape, m, s, args.seed) for s in seeds[m]) if n in by]
