@@ -16,8 +16,8 @@ import dataclasses
 from typing import Literal
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 Norm = Literal["batch", "instance", "group", "none"]
 Upsample = Literal["transpose", "bilinear"]

@@ -140,7 +140,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                 cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
+                 cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none",
+                                                                                      "sh"] = "lambert",
                  background: torch.Tensor | None = None, with_alpha: bool = False, with_means2d: bool = False,
                  draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with

@@ -271,7 +271,8 @@ def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
     train = load_views(cfg, "train", ctx.device)
     geo = fit_geometry(cfg, ctx, train)
     with torch.no_grad():
-        geo.tensor("features")[:, 3:] += 0.3 * torch.randn(geo.num_points, 9, generator=torch.Generator().manual_seed(1))
+        geo.tensor("features")[:, 3:] += 0.3 * torch.randn(geo.num_points, 9,
+                                                           generator=torch.Generator().manual_seed(1))
     model = build(cfg, neural_scene_from(cfg, geo, 0)).modules["model"]
     C = cfg.neural.features
     assert model.scene.cfg.channels == C + 9 and model.cond_channels == C + 1

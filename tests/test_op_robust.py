@@ -8,8 +8,7 @@ import math
 import pytest
 import torch
 
-from nsplat.ops import Splatter, composite_sample, project, sample, splat, splat_dense
-from nsplat.ops import functional
+from nsplat.ops import Splatter, composite_sample, functional, project, sample, splat, splat_dense
 from nsplat.ops.validation import AllocationError, memory_limit
 from tests.conftest import make_cameras, make_scene
 

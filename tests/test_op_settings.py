@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nsplat.config import ConfigError, FieldError, from_dict
-from nsplat.ops import Splatter, SplatSettings
+from nsplat.ops import SplatSettings, Splatter
 from nsplat.render import RenderConfig, render
 from tests.conftest import make_cameras, make_scene
 

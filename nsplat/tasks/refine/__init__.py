@@ -42,14 +42,13 @@ from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
 from nsplat.data.room import load_room
 from nsplat.data.views import PosedViews
-from nsplat.engine import (Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed,
-                           write_json)
+from nsplat.engine import Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed, write_json
 from nsplat.render import RenderConfig, background_of
 from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import ATTRIBUTES, SurfelScene
-from nsplat.shading import lambert
 from nsplat.sh import SHLighting
+from nsplat.shading import lambert
 from nsplat.tasks.refine.config import CAMERA_GROUPS, GROUPS, Config
 from nsplat.tasks.refine.filtering import improbable, point_errors
 from nsplat.tasks.refine.poses import CameraCorrection, pose_errors, pose_report
