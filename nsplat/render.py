@@ -45,8 +45,8 @@ class RenderConfig:
         composite: ``alpha`` (front-to-back) or ``additive``.
         background: colour composited under the splats (``null``: zeros; a per-call tensor overrides it).
         near, far: depth clipping range. lowpass: screen-space low-pass variance (px²).
-        deterministic: fixed-order backward (``false``: atomics on CPU, 2.1–2.5× faster backward,
-            docs/tradeoffs.md). hermite_order, hermite_tol: the sampler's Hermite expansions.
+        deterministic: fixed-order backward (``false``: atomics on CPU, faster and not bitwise reproducible;
+            measured in docs/tradeoffs.md). hermite_order, hermite_tol: the sampler's Hermite expansions.
         cutoff: truncation radius in σ for ``truncated``. tile: its tile size in pixels.
     """
 

@@ -1,5 +1,5 @@
 """The op's settings live in one place: :class:`nsplat.ops.SplatSettings`, held by ``Splatter`` and built
-by the render gateway's ``RenderConfig`` (issue 19, item 2)."""
+by the render gateway's ``RenderConfig``."""
 from __future__ import annotations
 
 import dataclasses
