@@ -169,7 +169,7 @@ def test_huge_outputs_are_refused_before_the_projection(monkeypatch):
     def no_projection(*args, **kwargs):
         raise AssertionError("the projection ran before the allocation check")
 
-    monkeypatch.setattr(functional, "project", no_projection)
+    monkeypatch.setattr(functional, "project_checked", no_projection)
     for width, height, samples in [(100000, 100000, 40), (4, 4, 10**9)]:
         with pytest.raises(AllocationError, match=r"^width/height/samples: "):
             splat(*_args(sc, V, K), width, height, samples=samples)
