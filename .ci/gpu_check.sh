@@ -10,7 +10,7 @@
 #   7. (GPU_CHECK_STAGES: "lego") the lego stage-1 step table (python -m benchmarks.gpu_lego: sampler and step at
 #      200², 400², 800², 1, 8 and 12 views per op call (lego.yaml's step: 12), at most 150 s; one step's host syncs),
 #      then configs/lego.yaml on the GPU for at
-#      most 300 s with its val PSNR over time (python -m benchmarks.val_curve). Needs the lego data under
+#      most 300 s with its val PSNR over time (python -m tools.val_curve). Needs the lego data under
 #      $NSPLAT_DATA/nerf_synthetic/lego_400 (docs/performance.md says how it travels); run it alone:
 #      GPU_CHECK_STAGES=lego GPU_CHECK_BUDGET_S=570 bash .ci/gpu_check.sh   (one 10-minute call with the build).
 #   8. always: the table of issue 57's GPU targets against what this run measured (python -m benchmarks.gpu_targets:
@@ -154,7 +154,7 @@ if has lego; then
       --overwrite log.progress=false geometry.log.validate="$VAL" log.validate=125 >"$OUT/lego_train.log" 2>&1
     echo "lego train rc=$RC ($((SECONDS - t)) s; 124: stopped at ${TRAIN_S} s, as meant)"
     tail -5 "$OUT/lego_train.log" || true
-    try env NSPLAT_BENCH_OUT="$OUT" timeout 60 python3 -m benchmarks.val_curve /tmp/gpu_lego_train \
+    try env NSPLAT_BENCH_OUT="$OUT" timeout 60 python3 -m tools.val_curve /tmp/gpu_lego_train \
       --name "gpu_lego_train-$GPU" --wall-s "$((SECONDS - t))" \
       --command "train.py --config configs/lego.yaml --device cuda geometry.log.validate=$VAL log.validate=125 (timeout $TRAIN_S s)"
     echo "val_curve rc=$RC"

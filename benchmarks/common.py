@@ -37,7 +37,8 @@ RESULTS = Path(_OUT) / "results" if _OUT else REPO / "benchmarks" / "results"
 #: Where figures go (a subfolder per topic, as in ``docs/images/``).
 IMAGES = Path(_OUT) / "images" if _OUT else REPO / "docs" / "images"
 #: The CPU flags worth naming beside a timing (vector units the op's build may use, native bfloat16 for the networks).
-CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni", "avx512_bf16",
+CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni",
+             "avx512_bf16",
              "amx_tile", "amx_bf16", "neon", "asimd", "sve")
 
 
@@ -135,9 +136,11 @@ def _read_json(path: Path) -> dict | None:
 def val_curve(run: Path) -> list[tuple[float, float]]:
     """``(training seconds, val PSNR)`` of a run folder's stage 1 (``geometry_history.json``), then stage 2
     (``history.json``, offset by stage 1's time when the run finished it); the seconds exclude validation."""
-    pts = [(h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "geometry_history.json") or {}).get("history", [])]
+    pts = [(h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "geometry_history.json") or {}).get("history",
+                                                                                                          [])]
     offset = (_read_json(run / "timing.json") or {}).get("geometry_s", 0.0)
-    pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "history.json") or {}).get("history", [])]
+    pts += [(offset + h["elapsed_s"], h["val_psnr"]) for h in (_read_json(run / "history.json") or {}).get("history",
+                                                                                                           [])]
     return pts
 
 

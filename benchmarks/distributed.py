@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.common import REPO, run_config, write_result
+
 #: The short job (on top of --config): few training and test views, a small hull, two geometry epochs.
 SHORT = ["data.train_limit=20", "data.test_limit=5", "geometry.grid=64", "geometry.max_points=6000",
          "geometry.optim.epochs=2", "neural.batch=4", "log.validate=0", "log.images=0", "log.checkpoint=0",

@@ -108,7 +108,8 @@ def run(args: argparse.Namespace) -> list[dict]:
                                ms_per_draw=1e3 * cpu / st.draws)
                     rows.append(row)
                     print(f"{kind:6s} {composite:8s} m={m:<3d} {row['estimator']:12s} "
-                          f"bias {b:+.4f}±{bse:.4f} ({row['bias_z']:+6.1f} SE)  z²={row['z2']:7.2f}  cos {row['cos_mean']:.3f}  "
+                          f"bias {b:+.4f}±{bse:.4f} ({row['bias_z']:+6.1f} SE)  z²={row['z2']:7.2f}  "
+                          f"cos {row['cos_mean']:.3f}  "
                           f"std {row['rel_std']:.3f}  rmse {rmse:.3f}  {row['ms_per_draw']:.2f} ms/draw", flush=True)
     return rows
 

@@ -195,7 +195,8 @@ def main() -> None:
                     del os.environ["NSPLAT_CUDA_PIXEL_LANES"]
             loop_ms = timer(device, step_loop, args.repeats) if B > 1 else None
             syncs = host_syncs(device, step)
-            rec = {"resolution": res, "views": B, "features": "SH view colour" if B == 1 else "SH view colour per camera",
+            rec = {"resolution": res, "views": B,
+                   "features": "SH view colour" if B == 1 else "SH view colour per camera",
                    "sampler_ms": statistics.median(sampler_ms), "step_ms": statistics.median(step_ms),
                    "sampler_runs_ms": sampler_ms, "step_runs_ms": step_ms, "target_step_ms": TARGETS.get((res, B)),
                    "loop_step_ms": statistics.median(loop_ms) if loop_ms else None, "loop_step_runs_ms": loop_ms,

@@ -4,7 +4,7 @@
         --main-job-s 17.2 --op OUT/op_cuda.json --name gpu_targets-h200
 
 Reads the step table of ``benchmarks.gpu_lego`` (one and eight views at 200²), the validation curve of the lego run
-(``benchmarks.val_curve``: the best val PSNR reached within 180 s), the main job's wall time and the gsplat rows of
+(``tools.val_curve``: the best val PSNR reached within 180 s), the main job's wall time and the gsplat rows of
 ``benchmarks.op_cuda`` (nsplat / gsplat at each N; the worst counts). A missing input leaves its row "not measured".
 Writes ``benchmarks/results/<name>.json`` and prints the Markdown table.
 """
@@ -17,10 +17,11 @@ from pathlib import Path
 from benchmarks.common import write_result
 from benchmarks.targets import evaluate, gsplat_ratio, psnr_within, read, step_ms, table
 
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lego", type=Path, help="benchmarks.gpu_lego's JSON")
-    ap.add_argument("--train", type=Path, help="benchmarks.val_curve's JSON of the lego run")
+    ap.add_argument("--train", type=Path, help="tools.val_curve's JSON of the lego run")
     ap.add_argument("--main-job-s", type=float, default=None, help="the main job's wall time (s)")
     ap.add_argument("--op", type=Path, help="benchmarks.op_cuda's JSON")
     ap.add_argument("--name", default="gpu_targets", help="result name (benchmarks/results/<name>.json)")

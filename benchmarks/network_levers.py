@@ -219,7 +219,8 @@ def main() -> None:
                        _cell(r, "ratio", ".2f"), _cell(r, "max_abs_diff", ".1e"), _cell(r, "compile_s", ".0f"),
                        r.get("error", "")] for r in rows])
     print(f"CPU capability {torch.backends.cpu.get_cpu_capability()}, native bfloat16: "
-          f"{[f for f in precision.NATIVE_BF16 if f in caps] or 'none'}; neural.precision auto -> {auto} ({why}; from the "
+          f"{[f for f in precision.NATIVE_BF16 if f in caps] or 'none'}; neural.precision auto -> {auto} "
+          f"({why}; from the "
           f"CPU's flags, whatever the caps); "
           f"2 threads, load before {load[0]:.2f}, after {os.getloadavg()[0]:.2f}"
           + "".join(f"; {k}={v}" for k, v in capped.items()))

@@ -44,7 +44,6 @@ def scene(N: int, res: int):
 
 def one(N: int, res: int, samples: int, repeats: int, dense_rows: int) -> dict:
     """Measure one configuration in this process; returns a JSON-able dict."""
-    import torch
 
     from nsplat.ops import splat, splat_dense
 
@@ -127,7 +126,8 @@ def main() -> int:
         slope_time_vs_pixels=slope([r["res"] ** 2 for r in by_res], [r["total_s"] for r in by_res]),
     )
     write_result("op_cpu", result)
-    print(f"target N={target_n} {target_res}² samples=40: fwd+bwd {target['total_s']:.3f}s (CPU {target['cpu_s']:.3f}s), "
+    print(f"target N={target_n} {target_res}² samples=40: fwd+bwd {target['total_s']:.3f}s "
+          f"(CPU {target['cpu_s']:.3f}s), "
           f"dense {target['dense_s_extrapolated']:.1f}s (from {target['dense_rows']} rows) → "
           f"speed-up {target['speedup_vs_dense']:.0f}×")
     print("\nvs N (128², samples 40)\n" + table(by_n, "N"))

@@ -29,6 +29,7 @@ import statistics
 import sys
 import time
 import traceback
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -102,7 +103,7 @@ def measure_nsplat(N: int, width: int, height: int, samples: int, device: torch.
     fwd, bwd, smp = [], [], []
     for _ in range(reps):
         out, t_f = timed(forward, device)
-        _, t_b = timed(lambda: backward(out), device)
+        _, t_b = timed(partial(backward, out), device)
         del out
         fwd.append(t_f)
         bwd.append(t_b)
@@ -264,7 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     if "cpu" in sections:
         cpu_vs_device(result, cpu_case, device, args.reps)
         save()
-    gs = measure_gsplat_rows(result, gs_sizes, base, device, args, run) if "gsplat" in sections else {"skipped": "not asked"}
+    gs = measure_gsplat_rows(result, gs_sizes, base, device, args,
+                             run) if "gsplat" in sections else {"skipped": "not asked"}
     result["gsplat_2dgs"] = gs
     targets(result, gs)
     save()

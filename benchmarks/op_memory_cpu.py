@@ -39,9 +39,9 @@ def one(N: int, res: int, samples: int, order: str) -> dict:
     """Measure one configuration in this process."""
     import torch
 
+    from benchmarks.op_cpu import scene
     from nsplat.ops import library, splat
     from nsplat.ops.build import backend
-    from benchmarks.op_cpu import scene
 
     backend(torch.device("cpu"))
     if order == "sorted":
@@ -86,7 +86,8 @@ def main() -> None:
             "(bound 24) |")
     lines = [head, "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['N']} | {r['res']}² | {r['samples']} | {r['order']} | {r['filled_slots'] / r['slots']:.0%} | "
+        lines.append(f"| {r['N']} | {r['res']}² | {r['samples']} | {r['order']} | "
+                     f"{r['filled_slots'] / r['slots']:.0%} | "
                      f"{r['extra_bytes'] / 2**20:.0f} | {r['per_point_bytes'] / 2**20:.0f} | "
                      f"{r['bytes_per_slot']:.1f}{'' if r['within_bound'] else ' (over)'} |")
     table = "\n".join(lines)

@@ -32,8 +32,8 @@ import pycolmap
 from matplotlib.figure import Figure
 
 from benchmarks.common import IMAGES, REPO, run_config, write_result
-from benchmarks.neural_runs import save, summary, view_grid
 from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
+from tools.neural_runs import save, summary, view_grid
 
 SPEC = CaptureSpec(resolution=256, views=56)
 
@@ -50,7 +50,8 @@ def sfm_accuracy(capture: Path) -> dict[str, float]:
            for n in names]
     ang = []
     for n in names:
-        dR = e[n].cam_from_world().rotation.matrix() @ sim.rotation.matrix().T @ g[n].cam_from_world().rotation.matrix().T
+        dR = (e[n].cam_from_world().rotation.matrix() @ sim.rotation.matrix().T
+              @ g[n].cam_from_world().rotation.matrix().T)
         ang.append(math.degrees(math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     cam, true = next(iter(est.cameras.values())), SPEC.camera()
     return {"registered": len(e), "centre_error_mean": float(np.mean(err)), "centre_error_max": float(max(err)),

@@ -59,7 +59,8 @@ def save_images(run_dir: Path, prefix: str, tag: str, frames: list[int]) -> None
     for f in frames:
         ref = room.images[f] * room.masks[f, ..., None]
         row = torch.cat([ref, before[f].clamp(0, 1), after[f].clamp(0, 1),
-                         (before[f] - room.images[f]).abs().clamp(0, 1), (after[f] - room.images[f]).abs().clamp(0, 1)], 1)
+                         (before[f] - room.images[f]).abs().clamp(0, 1), (after[f] - room.images[f]).abs().clamp(0,
+                                                                                                                 1)], 1)
         big = row.repeat_interleave(3, 0).repeat_interleave(3, 1)
         iio.imwrite(IMAGES / f"{prefix}_{tag}_frame{f:02d}.png", (big.numpy() * 255).round().astype(np.uint8))
 
@@ -87,8 +88,9 @@ def main() -> None:
         out["runs"].update(old.get("runs", {}))
     out["runs"].update(results)
     write_result(args.name, out)
-    hdr = f"{'estimator':>9} | {'rot° before':>11} {'after':>7} {'÷':>5} | {'trans before':>12} {'after':>7} {'÷':>5} | " \
-          f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}"
+    hdr = (f"{'estimator':>9} | {'rot° before':>11} {'after':>7} {'÷':>5} | "
+           f"{'trans before':>12} {'after':>7} {'÷':>5} | "
+           f"{'PSNR b/a':>13} | {'SSIM b/a':>13} {'+%':>6} | {'pts b/a':>11} | {'time s':>7} | {'RSS MB':>7}")
     print(hdr)
     print("-" * len(hdr))
     rows = []

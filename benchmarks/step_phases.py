@@ -1,6 +1,7 @@
 """Where the time of one stage-1 step goes.
 
-Loads fitted surfels (default: ``runs/lego_splat_only/geometry.ply``, configs/lego_splat_only.yaml's stage 1) and runs the stage-1 step of the config
+Loads fitted surfels (default: ``runs/lego_splat_only/geometry.ply``, configs/lego_splat_only.yaml's stage 1) and runs
+the stage-1 step of the config
 phase by phase on the training views, one view per step as the fitter does: view-dependent colour
 (:func:`nsplat.sh.view_colour`), projection, the sampler, compositing, the L1 loss, the backward of all of
 them, and the Adam step. Reports the mean wall milliseconds of each phase over ``--steps`` steps (after 3

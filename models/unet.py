@@ -16,8 +16,8 @@ import dataclasses
 from typing import Literal
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 Norm = Literal["batch", "instance", "group", "none"]
 Upsample = Literal["transpose", "bilinear"]
@@ -122,8 +122,8 @@ class UNet(nn.Module):
                 layers.append(nn.Dropout(dropout))
             self.up.append(nn.Sequential(*layers))
         self.head = nn.Conv2d(2 * widths[0], out_channels, 3, padding=1)
-        # channels-last (NHWC) weights and activations: 1.3-1.5x faster CPU convolutions with group norm
-        # (oneDNN), measured on the lego and default shaders; the input is converted in forward.
+        # channels-last (NHWC) weights and activations: oneDNN's faster CPU convolutions with group norm
+        # (docs/performance.md, "Network precision"); the input is converted in forward.
         self.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:

@@ -43,8 +43,17 @@ from nsplat.data import commands as data_commands
 from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
-from nsplat.runctx import (RunContext, RunFolderError, RunLock, check_run_folder, clear_run_folder,
-                           config_differences, finished_at, lock_holder, mark_finished)
+from nsplat.runctx import (
+    RunContext,
+    RunFolderError,
+    RunLock,
+    check_run_folder,
+    clear_run_folder,
+    config_differences,
+    finished_at,
+    lock_holder,
+    mark_finished,
+)
 from nsplat.tasks import TASKS, get_task
 from nsplat.video import RenderRequest
 from nsplat.viewer import commands as viewer_commands

@@ -84,7 +84,8 @@ def require(ok: bool, key: str, expected: str, value: Any) -> None:
 
 def require_fields(obj: Any, **rules: str) -> None:
     """Range rules for fields of ``obj``: ``">=N"`` or ``">N"`` (a number N), ``"prob"`` (in (0, 1]),
-    ``"unit"`` (in [0, 1]), ``"rate"`` (in [0, 1): Adam's betas), ``"open"`` (in (0, 1)) or ``"finite"``; a list or tuple must hold valid items only,
+    ``"unit"`` (in [0, 1]), ``"rate"`` (in [0, 1): Adam's betas), ``"open"`` (in (0, 1)) or ``"finite"``; a list or
+    tuple must hold valid items only,
     and ``None`` values (optional fields) pass. NaN fails every rule."""
     for name, rule in rules.items():
         value = getattr(obj, name)

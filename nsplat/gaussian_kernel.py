@@ -100,7 +100,8 @@ def from_gaussian(scales: torch.Tensor, opacities: torch.Tensor, kappa: torch.Te
 
 def antialiased_of_surfels(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor,
                            opacities: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                           *, lowpass: float, near: float = 0.01, far: float = 1e10) -> tuple[torch.Tensor, torch.Tensor]:
+                           *, lowpass: float, near: float = 0.01, far: float = 1e10) -> tuple[torch.Tensor,
+                                                                                              torch.Tensor]:
     """3DGS tangent std-devs ``[N,2]`` and opacities ``[N]`` (float64) of surfels for a rasteriser with
     Mip-Splatting's compensation (``antialiased``): its per-view factor is nsplat's κ at 0.3 px², so with
     ``lowpass`` 0.3 they are the surfels' own, ``o' = min(0.99, o)`` and ``s' = s``, exact in every view. Other

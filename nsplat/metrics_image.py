@@ -106,7 +106,8 @@ def lpips_status(net: str = "alex") -> tuple[bool, str]:
     try:
         import lpips as _  # noqa: F401 - optional dependency; it imports torchvision
     except Exception as exc:  # noqa: BLE001 - e.g. a torchvision built for another torch
-        return False, f"skipped: the 'lpips' package does not import ({type(exc).__name__}: {' '.join(str(exc).split())})"
+        return False, (f"skipped: the 'lpips' package does not import "
+                       f"({type(exc).__name__}: {' '.join(str(exc).split())})")
     return True, f"lpips {net}"
 
 

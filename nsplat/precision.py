@@ -2,11 +2,10 @@
 autocast where the CPU multiplies bfloat16 natively (the setting ``neural.precision``).
 
 ``auto`` follows the rule measured in docs/performance.md ("Network precision"): **bfloat16 when the CPU has
-AMX-BF16 or AVX512-BF16** (oneDNN then runs the convolutions with its ``avx512_core_amx`` /
-``avx512_core_bf16`` kernels: the U-Net's forward+backward 1.9× faster with AMX on issue 41's Xeon, 1.3× at 64²
-and 1.5× at 200² with AVX512-BF16 on Zen 4), **float32 otherwise** (bfloat16 is emulated there: 2.0–2.2× slower
-on the same Zen 4 cores with oneDNN capped below AVX512-BF16, 7.4× on an AVX2 CPU). On CUDA ``auto`` is float32
-(not measured there); ``bfloat16`` asks for CUDA autocast and needs a GPU with bfloat16.
+AMX-BF16 or AVX512-BF16** (oneDNN then runs the convolutions with its native ``avx512_core_amx`` /
+``avx512_core_bf16`` kernels, faster than float32), **float32 otherwise** (bfloat16 is emulated there, slower
+than float32). On CUDA ``auto`` is float32 (not measured there); ``bfloat16`` asks for CUDA autocast and needs a
+GPU with bfloat16.
 
 Only the networks run under autocast (:func:`autocast`); their outputs come back in float32, so the op (which
 runs in float32 in any case, docs/op.md §7), the losses, the parameters, the optimiser state and the

@@ -45,8 +45,8 @@ class RenderConfig:
         composite: ``alpha`` (front-to-back) or ``additive``.
         background: colour composited under the splats (``null``: zeros; a per-call tensor overrides it).
         near, far: depth clipping range. lowpass: screen-space low-pass variance (px²).
-        deterministic: fixed-order backward (``false``: atomics on CPU, 2.1–2.5× faster backward,
-            docs/tradeoffs.md). hermite_order, hermite_tol: the sampler's Hermite expansions.
+        deterministic: fixed-order backward (``false``: atomics on CPU, faster and not bitwise reproducible;
+            measured in docs/tradeoffs.md). hermite_order, hermite_tol: the sampler's Hermite expansions.
         cutoff: truncation radius in σ for ``truncated``. tile: its tile size in pixels.
     """
 
@@ -140,7 +140,8 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
 
 
 def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                 cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none", "sh"] = "lambert",
+                 cfg: RenderConfig, *, seed: int | torch.Tensor = 0, shading: Literal["lambert", "none",
+                                                                                      "sh"] = "lambert",
                  background: torch.Tensor | None = None, with_alpha: bool = False, with_means2d: bool = False,
                  draws: int = 1) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """Images ``[B,H,W,C]`` of ``scene`` from cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (with

@@ -293,7 +293,8 @@ class SurfelScene(nn.Module):
         """
         unknown = [k for k in lrs if k not in ATTRIBUTES and k != "default"]
         if unknown:
-            raise ValueError(f"lrs: unknown attribute(s) {unknown}; expected names from {list(ATTRIBUTES)} or 'default'")
+            raise ValueError(f"lrs: unknown attribute(s) {unknown}; expected names from {list(ATTRIBUTES)} "
+                             "or 'default'")
         groups = []
         for name in self.cfg.learn:
             lr = lrs.get(name, lrs.get("default"))

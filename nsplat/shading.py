@@ -48,9 +48,10 @@ PAPER_LIGHTS: tuple[DirectionalLight, ...] = (
 def light_matrix(lights: tuple[DirectionalLight, ...], dtype: torch.dtype = torch.float32,
                  device: str | torch.device = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """``(directions [L,3] unit, radiance_scale [L,3] = I/π · colour)`` of ``lights``."""
-    d = torch.tensor([l.direction for l in lights], dtype=dtype, device=device)
+    d = torch.tensor([light.direction for light in lights], dtype=dtype, device=device)
     d = torch.nn.functional.normalize(d, dim=-1)
-    c = torch.tensor([[l.intensity / math.pi * x for x in l.colour] for l in lights], dtype=dtype, device=device)
+    c = torch.tensor([[light.intensity / math.pi * x for x in light.colour] for light in lights], dtype=dtype,
+                     device=device)
     return d, c
 
 

@@ -18,9 +18,10 @@ Public API:
 from .functional import composite_sample, sample, sampler_isa, splat
 from .module import Splatter
 from .output import SplatOutput
-from .settings import SplatSettings
 from .projection import ALPHA_MAX, Projected, project, tangent_frame
 from .reference import splat_dense
+from .settings import SplatSettings
 from .tiled import splat_tiled
 
-__all__ = ["Splatter", "SplatSettings", "splat", "sample", "sampler_isa", "composite_sample", "SplatOutput", "Projected", "project", "tangent_frame", "splat_dense", "splat_tiled", "ALPHA_MAX"]
+__all__ = ["Splatter", "SplatSettings", "splat", "sample", "sampler_isa", "composite_sample", "SplatOutput",
+           "Projected", "project", "tangent_frame", "splat_dense", "splat_tiled", "ALPHA_MAX"]

@@ -16,14 +16,26 @@ import dataclasses
 
 import torch
 
-from .library import _entries_by_point, _entries_by_point_sorted  # noqa: F401 - re-exported (tests, benchmarks)
 from .build import backend
-from .library import composite_forward_op, sample_op
+from .library import _entries_by_point, _entries_by_point_sorted, composite_forward_op, sample_op  # noqa: F401 - re-exported (tests, benchmarks)
 from .output import SplatOutput
-from .projection import Projected, project, project_checked
-from .validation import (COMPOSITES, ESTIMATORS, INCLUSIONS, check_allocation, check_backface_cull,
-                         check_composite_call, check_deterministic, check_devices, check_geometry, check_sample_call,
-                         check_sampling, check_settings, inclusion_for, native_estimator)
+from .projection import Projected, project_checked
+from .validation import (
+    COMPOSITES,
+    ESTIMATORS,
+    INCLUSIONS,
+    check_allocation,
+    check_backface_cull,
+    check_composite_call,
+    check_deterministic,
+    check_devices,
+    check_geometry,
+    check_sample_call,
+    check_sampling,
+    check_settings,
+    inclusion_for,
+    native_estimator,
+)
 from .value_checks import value_checks
 
 _PROJECTED_FIELDS = ("means2d", "conics", "amps", "normals_cam", "plane_offsets", "depths", "sigma2")
@@ -72,7 +84,8 @@ def sample(proj: Projected, Ks: torch.Tensor, width: int, height: int, *, sample
         proj: projected surfels of ``B`` cameras (:func:`nsplat.ops.project`).
         Ks: ``[B,3,3]`` intrinsics (pixel rays for per-pixel depth ordering).
         samples: sample size ``m`` per pixel. eps: bound on the probability that a pixel's sample
-            differs from the exact SPS sample. seed: RNG seed, an int or a 0-dim integer tensor (``u`` is a hash of seed,
+            differs from the exact SPS sample. seed: RNG seed, an int or a 0-dim integer tensor (``u`` is a hash of
+            seed,
             camera, pixel, point). hermite_order: maximum Hermite order per dimension (0 disables expansions).
             hermite_tol: relative truncation bound a node's expansion must meet.
             inclusion: which π to return. "threshold" (default): ``π_k = min(1, λ_k·ξ_(m+1))`` with

@@ -140,7 +140,8 @@ def composite_backward_op(mu: Tensor, con: Tensor, amp: Tensor, nrm: Tensor, off
     given ``g_img [B,H,W,C]``, ``g_alpha``, ``g_depth [B,H,W,1]``, with the estimator's weights.
 
     Deterministic: pass 1 per pixel, pass 2 per point in a fixed (point, camera, slot) order, gradients
-    bitwise identical across runs and thread counts (the CPU runs it camera by camera, in the same order). Non-deterministic (CPU only): one pass per pixel
+    bitwise identical across runs and thread counts (the CPU runs it camera by camera, in the same order).
+    Non-deterministic (CPU only): one pass per pixel
     scattering into the per-point buffers with atomics (``csrc/cpu/scatter_cpu.cpp``)."""
     nat = native(mu.device.type)
     params = _contiguous(mu, con, amp, nrm, off, zc)

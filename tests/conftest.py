@@ -57,7 +57,8 @@ def write_dss_ply(path: Path, points: int = 600, seed: int = 0) -> Path:
         vertex[k], vertex[f"n{k}"] = xyz[:, i], nrm[:, i]
     face = np.empty(0, dtype=[("vertex_indices", "O")])
     path.parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face", val_types={"vertex_indices": "i4"},
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face",
+                                                                        val_types={"vertex_indices": "i4"},
                                                                         len_types={"vertex_indices": "u1"})],
             text=False, byte_order="<").write(str(path))
     return path

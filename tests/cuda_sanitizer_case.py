@@ -6,7 +6,8 @@
 ``all`` launches every kernel path of the op once on tiny scenes: both compositing modes, the three gradient
 estimators, float32 and float64, a sample larger than any shared-memory heap (samples=300), many channels
 (the chunked per-point feature pass), Hermite order 0 (exact leaf sums only), batched cameras, the tree on
-N=0 and N < samples, the non-deterministic (atomic) accumulation and stratified sampling. ``one`` is a single alpha/``ht`` forward+backward (racecheck is slow).
+N=0 and N < samples, the non-deterministic (atomic) accumulation and stratified sampling. ``one`` is a single
+alpha/``ht`` forward+backward (racecheck is slow).
 Prints one line per case; the sanitizer's own summary says whether any access was bad.
 """
 from __future__ import annotations
@@ -36,7 +37,8 @@ def run_case(N: int, C: int, B: int, W: int, H: int, dtype: torch.dtype, **kw) -
     grads = torch.autograd.grad(loss, ps + [bg], allow_unused=True)
     torch.cuda.synchronize()
     finite = all(g is None or bool(torch.isfinite(g).all()) for g in grads)
-    print(f"N={N} C={C} B={B} {W}x{H} {dtype} {kw}: image sum {float(out.image.detach().sum()):.6g}, finite grads {finite}",
+    print(f"N={N} C={C} B={B} {W}x{H} {dtype} {kw}: image sum {float(out.image.detach().sum()):.6g}, "
+          f"finite grads {finite}",
           flush=True)
 
 

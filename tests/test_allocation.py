@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import allocation as AT
+from tools import allocation as AT
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"

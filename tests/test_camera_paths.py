@@ -15,7 +15,7 @@ import pytest
 import torch
 import yaml
 
-from nsplat.camera_paths import CameraPath, orbit, read_nerfstudio_path, smooth_path, tour
+from nsplat.camera_paths import orbit, read_nerfstudio_path, smooth_path, tour
 from nsplat.cameras import camera_centres, look_at, opengl_c2w_to_viewmat
 from nsplat.cli import main
 from nsplat.errors import DataError

@@ -21,19 +21,19 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from nsplat.cameras import camera_centres
-from nsplat.tasks.neural.background import project
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.data.colmap import load_colmap
-from nsplat.errors import DataError
-from nsplat.data.raytrace import camera_rays, render, shade
 from nsplat.data.procedural import camera_poses, make_scene
+from nsplat.data.raytrace import camera_rays, render, shade
 from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
+from nsplat.errors import DataError
+from nsplat.tasks.neural.background import project
+from nsplat.tasks.neural.capture import prepare, with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.capture import prepare, with_capture_render
-from nsplat.tasks.neural.sfm_init import fill_box
 from nsplat.tasks.neural.geometry import _sfm_points, initial_geometry
+from nsplat.tasks.neural.sfm_init import fill_box
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = CaptureSpec(resolution=128, views=24)

@@ -179,7 +179,8 @@ def test_cut_off_download_resumes_with_a_range_request(server, tmp_path, capsys)
     code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
     assert code == 2 and len(err) == 1 and err[0].startswith("error: download of ")
     assert f"cut off after {size // 2} of {size} bytes" in err[0] and "resume" in err[0]
-    assert _files(root) == ["nerf_synthetic", "nerf_synthetic/lego.part", "nerf_synthetic/lego.part/nerf_synthetic.zip.part"]
+    assert _files(root) == ["nerf_synthetic", "nerf_synthetic/lego.part",
+                            "nerf_synthetic/lego.part/nerf_synthetic.zip.part"]
     code, out, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
     assert code == 0 and err == [] and f"note: set NSPLAT_DATA={root}" in out
     assert server.requests[-1] == ("nerf_synthetic.zip", f"bytes={size // 2}-")

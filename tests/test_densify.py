@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from nsplat.fitting.densify import DensifyConfig, DensityStats, densify
 from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, fit
+from nsplat.fitting.densify import DensifyConfig, DensityStats, densify
 from nsplat.render import RenderConfig, render_views
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks.reconstruct import fibonacci_sphere
@@ -179,7 +179,8 @@ def test_fit_renders_a_batch_in_one_call_with_the_per_view_gradients(tmp_path, m
         monkeypatch.setattr(fitter, "adam_step", lambda scene, opt, c: grads.append(
             [p.grad.clone() for p in scene.parameters()]) or real_adam(scene, opt, c))
         if per_view:
-            monkeypatch.setattr(FitConfig, "strategies", lambda self: [type("PerView", (Strategy,), {"per_view": True})()])
+            monkeypatch.setattr(FitConfig, "strategies", lambda self: [type("PerView", (Strategy,),
+                                                                            {"per_view": True})()])
         _, _, _, _, scene = _tiny_problem(n=120, views=6, res=16)
         fit(scene, views, cfg, rcfg, tmp_path / f"run-{per_view}", log=LogConfig(progress=False), seed=3)
         monkeypatch.undo()
@@ -268,7 +269,8 @@ def test_fit_grows_during_an_annealed_sh_schedule_within_the_budget_and_drops_un
         runs.append(scene)
     scene = runs[0]
     assert 122 < scene.num_points <= 150, scene.num_points
-    assert float((scene.means.detach() - far).norm(dim=-1).min()) > 1.0  # both unseen surfels are gone (no copies either)
+    # both unseen surfels are gone (no copies either)
+    assert float((scene.means.detach() - far).norm(dim=-1).min()) > 1.0
     assert scene.features.shape == (scene.num_points, 12)
     assert all(bool(torch.isfinite(t).all()) for t in scene.state_dict().values())
     assert float(scene.scales.detach().max()) <= 0.2 * (1 + 1e-6)

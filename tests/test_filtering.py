@@ -6,8 +6,8 @@ import torch
 
 from nsplat.cameras import intrinsics, look_at
 from nsplat.config import ConfigError
-from nsplat.tasks.refine.filtering import ErrorAccumulator, FilterConfig, improbable, point_errors
 from nsplat.ops import splat_dense
+from nsplat.tasks.refine.filtering import ErrorAccumulator, FilterConfig, improbable, point_errors
 
 
 def _plane(n_side: int = 16, size: float = 1.0):
@@ -45,13 +45,13 @@ def test_filter_removes_planted_outliers():
     N = torch.cat([normals, normals[:k]])
     C = torch.cat([colours, out_cols])
     S = torch.full((n + k, 2), scale, dtype=torch.float64)
-    O = torch.full((n + k,), 0.95, dtype=torch.float64)
+    Op = torch.full((n + k,), 0.95, dtype=torch.float64)
 
     mask = torch.ones(ref.shape[:-1], dtype=torch.bool)
     mask[:, :2] = False  # an invalid band: must not count
     acc = ErrorAccumulator(n + k)
     for b in range(3):  # accumulate view by view
-        E, W = point_errors(lambda f: splat_dense(M, N, S, O, f, V[b:b + 1], K[b:b + 1], 32, 32).image,
+        E, W = point_errors(lambda f: splat_dense(M, N, S, Op, f, V[b:b + 1], K[b:b + 1], 32, 32).image,
                             C, ref[b:b + 1], mask[b:b + 1])
         acc.add(E, W)
     bad = improbable(acc.error, acc.weight, FilterConfig(p_value=1e-3, min_weight=0.05))
@@ -68,16 +68,16 @@ def test_point_errors_match_explicit_sums():
     V, K = _cameras()
     n = means.shape[0]
     S = torch.full((n, 2), scale, dtype=torch.float64)
-    O = torch.full((n,), 0.5, dtype=torch.float64)
+    Op = torch.full((n,), 0.5, dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     ref = torch.rand(3, 32, 32, 3, generator=g, dtype=torch.float64)
     mask = torch.rand(3, 32, 32, generator=g) > 0.3
-    E, W = point_errors(lambda f: splat_dense(means, normals, S, O, f, V, K, 32, 32, composite="additive").image,
+    E, W = point_errors(lambda f: splat_dense(means, normals, S, Op, f, V, K, 32, 32, composite="additive").image,
                         colours, ref, mask)
     for k in (0, 5, 15):
         onehot = torch.zeros(n, 1, dtype=torch.float64)
         onehot[k] = 1.0
-        w = splat_dense(means, normals, S, O, onehot, V, K, 32, 32, composite="additive").image[..., 0] * mask
+        w = splat_dense(means, normals, S, Op, onehot, V, K, 32, 32, composite="additive").image[..., 0] * mask
         sq = ((colours[k] - ref) ** 2).mean(-1)
         assert E[k].item() == pytest.approx(float((w * sq).sum()), rel=1e-9)
         assert W[k].item() == pytest.approx(float(w.sum()), rel=1e-9)

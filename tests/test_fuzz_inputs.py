@@ -81,7 +81,8 @@ def _finished_run() -> Path:
     if "run" not in _FINISHED:
         root = Path(tempfile.mkdtemp(prefix="nsplat-fuzz-"))
         cfg = root / "c.yaml"
-        cfg.write_text(yaml.safe_dump({"task": "demo", "points": 30, "resolution": 4, "views": 1, "render": {"samples": 2}}))
+        cfg.write_text(yaml.safe_dump({"task": "demo", "points": 30, "resolution": 4, "views": 1,
+                                       "render": {"samples": 2}}))
         assert cli_main(["--config", str(cfg), "--run", str(root / "run")]) == 0
         _FINISHED["run"] = root / "run"
     return _FINISHED["run"]
@@ -89,7 +90,8 @@ def _finished_run() -> Path:
 
 @FUZZ
 @given(args=st.lists(st.sampled_from(["--resume", "points=31", "render.samples=3", "views=0", "seed=1", "eval",
-                                      "render", "resolution=5", "--seed", "2", "bogus", "render.eps=1e-3"]), max_size=4))
+                                      "render", "resolution=5", "--seed", "2", "bogus", "render.eps=1e-3"]),
+                                      max_size=4))
 def test_fuzz_commands_on_a_finished_run_never_modify_it(capsys, args):
     run = _finished_run()
     before = folder_hash(run)

@@ -32,6 +32,7 @@ from nsplat.tasks.neural.geometry import geometry_scene_config, initial_geometry
 from tests.gs_reference import gaussians_of_ply, render_3dgs, sh_to_rgb
 from tests.test_neural import _tiny
 
+
 def _eval_3dgs(f_dc: np.ndarray, f_rest: np.ndarray, d: np.ndarray) -> np.ndarray:
     """RGB ``[N,3]`` as 3DGS computes it (:func:`tests.gs_reference.sh_to_rgb`) from a file's ``f_dc [N,3]``,
     ``f_rest [N,45]`` for unit directions ``d``."""

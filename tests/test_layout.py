@@ -6,8 +6,9 @@
   ``nsplat/fitting/`` imports ``nsplat.viewer`` (at module level or inside a function). Tasks build
   their views with :mod:`nsplat.view_model`; the viewer reaches them through the task registry.
 * No Python module of the package (``nsplat/``, ``ops/``, ``models/``) is longer than 450 lines.
-* Tests import the package and the shared modules of the ``benchmarks`` package (``benchmarks.allocation``),
-  never a benchmark script (a module that runs as ``python -m benchmarks.<name>``).
+* Tests import the package and the shared modules of the ``benchmarks`` and ``tools`` packages
+  (``tools.allocation``, ``benchmarks.targets``), never a script (a module that runs as
+  ``python -m benchmarks.<name>`` or ``python -m tools.<name>``).
 """
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MAX_LINES = 450
 #: Source folder → the package it installs as (pyproject.toml ``package-dir``).
 PACKAGES = {"nsplat": "nsplat", "ops": "nsplat.ops", "models": "nsplat.models"}
+#: The repository's folders of scripts (not installed): the benchmarks and the tools.
+SCRIPT_PACKAGES = ("benchmarks", "tools")
 
 
 def _imported_modules(path: Path) -> list[tuple[int, str]]:
@@ -194,12 +197,12 @@ def test_tests_do_not_load_benchmark_scripts():
         tree = ast.parse(f.read_text(), str(f))
         for line, name in _imported_modules(f):
             parts = name.split(".")
-            if parts[0] != "benchmarks":
+            if parts[0] not in SCRIPT_PACKAGES:
                 continue
             target = next((ROOT.joinpath(*parts[:k]).with_suffix(".py") for k in range(len(parts), 1, -1)
                            if ROOT.joinpath(*parts[:k]).with_suffix(".py").is_file()), None)
             if target is None or _is_script(target):
                 bad.append(f"{f.name}:{line}: {name}")
-        bad += [f"{f.name}:{n.lineno}: path into benchmarks/" for n in ast.walk(tree)
-                if isinstance(n, ast.Constant) and n.value == "benchmarks"]
-    assert not bad, "tests import the package or the benchmarks' shared modules, not benchmark scripts: " + str(bad)
+        bad += [f"{f.name}:{n.lineno}: path into {n.value}/" for n in ast.walk(tree)
+                if isinstance(n, ast.Constant) and n.value in SCRIPT_PACKAGES]
+    assert not bad, "tests import the package or the shared modules of benchmarks/ and tools/, not scripts: " + str(bad)

@@ -151,8 +151,12 @@ def test_resume_equals_uninterrupted_and_eval_writes_json(cache, tmp_path, caplo
     assert iio.imread(full / "eval_test" / "sheet.png").shape[2] in (3, 4)
     for v in per_view:
         stem = Path(v["name"]).name
-        assert iio.imread(full / "eval_test" / f"{stem}.png").shape == (24, 24, 3)
-        assert iio.imread(full / "eval_test" / f"{stem}_gt.png").shape == (24, 24, 3)
+        render_png = iio.imread(full / "eval_test" / f"{stem}.png")
+        gt_png = iio.imread(full / "eval_test" / f"{stem}_gt.png")
+        assert render_png.shape == gt_png.shape == (24, 24, 3)
+        # the standard protocol scores the 8-bit images the run wrote: their PSNR is the view's
+        mse = float((((render_png.astype(float) - gt_png.astype(float)) / 255.0) ** 2).mean())
+        assert 10 * math.log10(1 / mse) == pytest.approx(v["psnr"], abs=1e-6)
     m_cut = json.loads((cut / "eval_test" / "metrics.json").read_text())
     assert m_cut["psnr"] == m["psnr"] and m_cut["ssim"] == m["ssim"]
     assert main(["eval", "--run", str(full), "--split", "val"]) == 0
@@ -271,7 +275,8 @@ def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
     train = load_views(cfg, "train", ctx.device)
     geo = fit_geometry(cfg, ctx, train)
     with torch.no_grad():
-        geo.tensor("features")[:, 3:] += 0.3 * torch.randn(geo.num_points, 9, generator=torch.Generator().manual_seed(1))
+        geo.tensor("features")[:, 3:] += 0.3 * torch.randn(geo.num_points, 9,
+                                                           generator=torch.Generator().manual_seed(1))
     model = build(cfg, neural_scene_from(cfg, geo, 0)).modules["model"]
     C = cfg.neural.features
     assert model.scene.cfg.channels == C + 9 and model.cond_channels == C + 1

@@ -30,10 +30,10 @@ import torch
 
 import nsplat.ops.library as library
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
+from nsplat.ops.build import CSRC, build_dir, cxx_standard, source_hash
 from nsplat.ops.reference import MIN_TOTAL, size_measures, sps_bruteforce
 from nsplat.ops.rng import stratified_uniforms
 from nsplat.ops.validation import inclusion_for
-from nsplat.ops.build import CSRC, build_dir, cxx_standard, source_hash
 from tests.conftest import make_cameras, make_scene
 from tests.float_parity import forward_tolerance, gradient_tolerance, largest_alpha_difference
 from tests.test_op_stability import CASES

@@ -16,7 +16,7 @@ from nsplat.ops import Splatter, project, sample
 from nsplat.ops.host_reads import count_host_traffic, host_read
 from nsplat.render import RenderConfig, render
 from tests.conftest import make_cameras, make_scene
-from tests.test_op_cuda import _both, _emulate, _assert_identical, assert_same_sample_law, emulated  # noqa: F401
+from tests.test_op_cuda import _assert_identical, _both, _emulate, assert_same_sample_law, emulated  # noqa: F401
 
 PARAMS = ("means", "normals", "scales", "opacities", "features")
 

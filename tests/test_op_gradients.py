@@ -7,8 +7,15 @@ import torch
 from scipy.stats import norm
 
 from nsplat.ops import composite_sample, project, sample, splat, splat_dense
-from nsplat.ops.reference import pips_probabilities, pixel_centres, pixel_rays, size_measures, splat_alpha, \
-    splat_depth, sps_expectation_weights
+from nsplat.ops.reference import (
+    pips_probabilities,
+    pixel_centres,
+    pixel_rays,
+    size_measures,
+    splat_alpha,
+    splat_depth,
+    sps_expectation_weights,
+)
 from tests.conftest import make_cameras, make_scene
 
 NAMES = ("means", "normals", "scales", "opacities", "features", "viewmats", "background")

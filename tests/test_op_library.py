@@ -13,8 +13,7 @@ import torch
 from torch import nn
 
 from nsplat.ops import Splatter, composite_sample, project, sample, splat
-from nsplat.ops.library import (composite_backward_op, composite_forward_op, project_backward_op, project_op,
-                                sample_op)
+from nsplat.ops.library import composite_backward_op, composite_forward_op, project_backward_op, project_op, sample_op
 from tests.conftest import make_cameras, make_scene
 
 PARAMS = ("means", "normals", "scales", "opacities", "features")
@@ -177,7 +176,8 @@ def test_opcheck_projection_ops():
     """``torch.library.opcheck`` of the native projection and its backward (CPU kernels)."""
     sc = make_scene(10, 0, C=2, spread=0.3)
     V, K = make_cameras(2, 8, 6, focal=8.0)
-    args = [sc[n].clone().requires_grad_() for n in PARAMS[:4]] + [V.clone().requires_grad_(), K.clone().requires_grad_()]
+    args = [sc[n].clone().requires_grad_() for n in PARAMS[:4]] + [V.clone().requires_grad_(),
+                                                                   K.clone().requires_grad_()]
     torch.library.opcheck(project_op, (*args, 0.01, 1e10, 1.0, False))
     out = project_op(*(a.detach() for a in args), 0.01, 1e10, 1.0, False)
     g = torch.Generator().manual_seed(3)

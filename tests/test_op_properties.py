@@ -3,7 +3,7 @@ and the deterministic / non-deterministic backward.
 
 Scenes are drawn by :func:`draw_case` through a small ``Draw`` interface, so that the same generator
 feeds hypothesis here (60 shrinkable examples) and the long soak run in
-``benchmarks/properties_soak.py`` (numpy RNG, >= 10k scenes). The generator covers the domain's
+``tools/properties_soak.py`` (numpy RNG, >= 10k scenes). The generator covers the domain's
 edges: splat screen sizes from far below a pixel to 1e9 px (float32; 1e-20..1e12 px in float64),
 depths over nine decades, coordinates offset by up to 1e6, opacities 0 / 1e-30 / 1, exactly and
 nearly edge-on normals, coincident points, points behind the camera or at the near plane, 1-pixel
@@ -12,7 +12,7 @@ images, sample sizes above N, and the low-pass edge 1e-12 px² in float32 (0 in 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import pytest

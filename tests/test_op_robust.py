@@ -8,8 +8,7 @@ import math
 import pytest
 import torch
 
-from nsplat.ops import Splatter, composite_sample, project, sample, splat, splat_dense
-from nsplat.ops import functional
+from nsplat.ops import Splatter, composite_sample, functional, project, sample, splat, splat_dense
 from nsplat.ops.validation import AllocationError, memory_limit
 from tests.conftest import make_cameras, make_scene
 
@@ -170,7 +169,7 @@ def test_huge_outputs_are_refused_before_the_projection(monkeypatch):
     def no_projection(*args, **kwargs):
         raise AssertionError("the projection ran before the allocation check")
 
-    monkeypatch.setattr(functional, "project", no_projection)
+    monkeypatch.setattr(functional, "project_checked", no_projection)
     for width, height, samples in [(100000, 100000, 40), (4, 4, 10**9)]:
         with pytest.raises(AllocationError, match=r"^width/height/samples: "):
             splat(*_args(sc, V, K), width, height, samples=samples)

@@ -10,8 +10,13 @@ import pytest
 import torch
 
 from nsplat.ops import project, sample, splat
-from nsplat.ops.reference import (MIN_TOTAL, pips_probabilities, size_measures, sps_bruteforce,
-                                  sps_inclusion_probabilities)
+from nsplat.ops.reference import (
+    MIN_TOTAL,
+    pips_probabilities,
+    size_measures,
+    sps_bruteforce,
+    sps_inclusion_probabilities,
+)
 from tests.conftest import make_cameras, make_scene
 
 W, H = 24, 20
@@ -145,7 +150,8 @@ def test_pixels_below_floor_are_empty_and_show_background():
 
 def test_inclusion_frequencies_match_exact_sps_and_pips_gap_is_measured():
     """Calibration: over many seeds the inclusion frequency of each point matches the exact SPS inclusion
-    probability (binomial 4σ), and the returned π (``inclusion="pips"``) equals the πps probability; the SPS-vs-πps gap (Ohlsson)
+    probability (binomial 4σ), and the returned π (``inclusion="pips"``) equals the πps probability; the SPS-vs-πps
+    gap (Ohlsson)
     is measured and bounded."""
     N, m, R = 14, 3, 600
     _, _, K, proj = _setup(N, seed=21, B=1, spread=0.15, scale=(0.05, 0.1))
@@ -264,7 +270,8 @@ def _isas_this_cpu_runs() -> list[str]:
 def test_every_instruction_set_samples_the_same_bits(monkeypatch, dtype, m, eps, inclusion, stratified):
     """The CPU sampler's tile search is compiled for each instruction set (base, AVX2, AVX-512) and picked at run
     time; NSPLAT_CPU_SIMD forces one. Every set this CPU runs gives bitwise identical indices, π, Λ̂ and work
-    (independent IEEE lanes, explicit fused multiply-adds only), on an image whose size is not a multiple of the 4x4 tile."""
+    (independent IEEE lanes, explicit fused multiply-adds only), on an image whose size is not a multiple of the
+    4x4 tile."""
     isas = _isas_this_cpu_runs()
     if platform.machine() in ("x86_64", "AMD64"):
         assert "base" in isas and "avx2" in isas, isas  # every x86-64 CPU the project supports has AVX2

@@ -1,5 +1,5 @@
 """The op's settings live in one place: :class:`nsplat.ops.SplatSettings`, held by ``Splatter`` and built
-by the render gateway's ``RenderConfig`` (issue 19, item 2)."""
+by the render gateway's ``RenderConfig``."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nsplat.config import ConfigError, FieldError, from_dict
-from nsplat.ops import Splatter, SplatSettings
+from nsplat.ops import SplatSettings, Splatter
 from nsplat.render import RenderConfig, render
 from tests.conftest import make_cameras, make_scene
 

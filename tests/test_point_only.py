@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import math
 from pathlib import Path
@@ -15,8 +14,8 @@ import yaml
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.eval_protocol import read_per_view_csv
-from nsplat.sh import sh_view_basis, view_channels, view_colour
 from nsplat.export import read_ply
+from nsplat.sh import sh_view_basis, view_channels, view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.viewer.runs import load_run
 from tests.test_neural import _tiny
@@ -138,8 +137,8 @@ def test_lego_point_only_config_is_lego_stage_one_on_half_the_schedule():
     assert point.data == lego.data and point.render == lego.render
     po, lo = point.geometry.optim, lego.geometry.optim
     assert (2 * po.epochs, 2 * po.anneal_epochs) == (lo.epochs, lo.anneal_epochs) == (144, 24)
-    assert dataclasses.replace(point.geometry, optim=dataclasses.replace(po, epochs=lo.epochs,
-                                                                          anneal_epochs=lo.anneal_epochs)) == lego.geometry
+    po_as_lo = dataclasses.replace(po, epochs=lo.epochs, anneal_epochs=lo.anneal_epochs)
+    assert dataclasses.replace(point.geometry, optim=po_as_lo) == lego.geometry
     # stage 2 alone on fitted surfels (what the time-to-quality benchmark's "s1-…+s2-…" rows run) loads too
     again = load_config(Config, read_yaml(REPO / "configs" / "lego.yaml"),
                         ["geometry.init=ply", "geometry.ply=fitted.ply", "geometry.optim.epochs=0"])
@@ -156,8 +155,8 @@ def test_lego_400_config_is_lego_at_full_resolution_on_an_hour():
     assert dataclasses.replace(big.data, resolution=200) == lego.data
     bo, lo = big.geometry.optim, lego.geometry.optim
     assert (4 * bo.epochs, 6 * bo.anneal_epochs) == (3 * lo.epochs, bo.epochs) == (432, 108)
-    assert dataclasses.replace(big.geometry, optim=dataclasses.replace(bo, epochs=lo.epochs,
-                                                                        anneal_epochs=lo.anneal_epochs)) == lego.geometry
+    bo_as_lo = dataclasses.replace(bo, epochs=lo.epochs, anneal_epochs=lo.anneal_epochs)
+    assert dataclasses.replace(big.geometry, optim=bo_as_lo) == lego.geometry
     assert big.neural == lego.neural and big.render == lego.render
 
 

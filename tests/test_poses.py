@@ -5,11 +5,15 @@ import math
 import pytest
 import torch
 
-from nsplat.cameras import intrinsics, look_at
+from nsplat.cameras import camera_centres, intrinsics, look_at, perturb_viewmats
 from nsplat.ops import splat_dense
-from nsplat.cameras import camera_centres, perturb_viewmats
-from nsplat.tasks.refine.poses import (CameraCorrection, align_to_reference, pose_errors, pose_report,
-                                       relative_pose_errors)
+from nsplat.tasks.refine.poses import (
+    CameraCorrection,
+    align_to_reference,
+    pose_errors,
+    pose_report,
+    relative_pose_errors,
+)
 
 
 def _scene():
@@ -22,7 +26,8 @@ def _scene():
     floor = torch.stack([a, one, 0.5 * b], -1)      # y = 1, faces -y
     side = torch.stack([one, 0.5 * a, 0.5 * b], -1)  # x = 1, faces -x
     means = torch.cat([back, floor, side])
-    normals = torch.cat([torch.tensor([0.0, 0.0, -1.0]).expand_as(back), torch.tensor([0.0, -1.0, 0.0]).expand_as(floor),
+    normals = torch.cat([torch.tensor([0.0, 0.0, -1.0]).expand_as(back), torch.tensor([0.0, -1.0,
+                                                                                       0.0]).expand_as(floor),
                          torch.tensor([-1.0, 0.0, 0.0]).expand_as(side)])
     p = means
     colours = torch.stack([0.5 + 0.45 * torch.sin(9 * p[:, 0] + 3 * p[:, 2]),

@@ -9,18 +9,18 @@ import torch
 
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import ConfigError, load_config
-from nsplat.metrics import point_cloud_distances
-from nsplat.ops import splat_dense
 from nsplat.data.views import PosedViews
 from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, MaskLossConfig, RepositionConfig, build, fit
 from nsplat.fitting.reposition import point_contributions, reposition
+from nsplat.metrics import point_cloud_distances
+from nsplat.ops import splat_dense
 from nsplat.render import RenderConfig, render_views
+from nsplat.render_truncated import splat_truncated
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.shading import lambert
 from nsplat.tasks import get_task
 from nsplat.tasks.reconstruct import Config, fibonacci_sphere
-from nsplat.render_truncated import splat_truncated
 
 
 def _cameras(count: int, res: int, dist: float = 3.0, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -291,7 +291,8 @@ def test_task_registered_and_config_errors_name_the_key():
     cfg = load_config(Config, base, ["data.views=16", "render.renderer=truncated"])
     assert cfg.data.views == 16 and cfg.render.renderer == "truncated"
     for override, key in [("data.shape=dragon", "data.shape"), ("render.renderer=fast", "render.renderer"),
-                          ("optim.colour=1", "optim.colour"), ("optim.learn={colour: 1}", "optim.learn"), ("scene.channels=4", "scene.channels"),
+                          ("optim.colour=1", "optim.colour"), ("optim.learn={colour: 1}", "optim.learn"),
+                          ("scene.channels=4", "scene.channels"),
                           ("render.estimator=biased", "render.estimator"), ("data.views=0", "data.views")]:
         with pytest.raises(ConfigError, match=key):
             load_config(Config, base, [override])
@@ -381,7 +382,8 @@ def test_fit_max_scale_caps_every_std_dev_from_the_first_render(tmp_path):
     assert float(capped.scales.detach().max()) <= cap * (1 + 1e-6)
     free, _ = run(0.0, 6)
     assert float(free.scales.detach().max()) > 1.5 * cap
-    const = SurfelScene.from_points(SceneConfig(scale=0.1, learn=["means", "features"]), scene.means.detach(), scene.normals.detach(), features=0.5)
+    const = SurfelScene.from_points(SceneConfig(scale=0.1, learn=["means", "features"]), scene.means.detach(),
+                                    scene.normals.detach(), features=0.5)
     with pytest.raises(ConfigError, match="max_scale"):
         fit(const, _views(images, vm, Ks), FitConfig(epochs=1, batch=4, learn={"features": 0.01}, reposition=OFF,
                                                      max_scale=0.05), rcfg, tmp_path / "const",

@@ -1,17 +1,21 @@
 """Task ``refine``: exact resume (N steps in one go == N/2 steps, then resume for N/2 more), with the
 warm-up and the joint or alternating schedule, the coverage mask, the outlier filter (pruning) and
-the learnable focal exercised on a tiny room."""
+the learnable focal exercised on a tiny room; and that refinement reduces the pose error."""
 import dataclasses
+import json
 
 import pytest
 import torch
 
 from nsplat.checkpoint import load_checkpoint
+from nsplat.config import load_config, read_yaml
+from nsplat.data.paths import config_dir
 from nsplat.engine import LogConfig
 from nsplat.render import RenderConfig
 from nsplat.runctx import RunContext
 from nsplat.scene import SceneConfig
 from nsplat.tasks import refine
+from nsplat.tasks.refine import commands
 
 
 def _cfg(tmp_path, steps: int, schedule: str) -> refine.Config:
@@ -36,17 +40,17 @@ def _cfg(tmp_path, steps: int, schedule: str) -> refine.Config:
 
 
 def _run(cfg, run_dir, resume, monkeypatch, losses):
-    orig = refine._masked_l1
+    orig = commands.masked_l1
 
     def record(img, ref, mask):
         loss = orig(img, ref, mask)
         losses.append(float(loss.detach()))
         return loss
 
-    monkeypatch.setattr(refine, "_masked_l1", record)
+    monkeypatch.setattr(commands, "masked_l1", record)
     ctx = RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=3, resume=resume)
     out = refine.run(cfg, ctx)
-    monkeypatch.setattr(refine, "_masked_l1", orig)
+    monkeypatch.setattr(commands, "masked_l1", orig)
     return out
 
 
@@ -79,3 +83,22 @@ def test_resume_is_exact(tmp_path, monkeypatch, schedule):
     assert twist.abs().sum() > 0  # the poses moved
     for key in ("rot_deg", "trans", "psnr", "ssim", "points"):
         assert final_a[key] == final_b[key], key
+
+
+def test_refinement_reduces_the_pose_error(tmp_path):
+    """Joint refinement of poses, points and SH shading on a small room (6 frames at 64×48, every pose perturbed by
+    2° and 8 cm, the noisy SLAM-like cloud of configs/refine_room.yaml, 150 steps, no outlier filter): the mean
+    rotation error falls from 2.000° to 0.654° (÷3.1) and the translation error from 0.080 to 0.032 (÷2.5) as
+    measured; asserted: at least ÷2.2 and ÷1.7."""
+    torch.set_num_threads(1)
+    cfg = load_config(refine.Config, read_yaml(config_dir() / "refine_room.yaml"), [
+        "data.room.width=64", "data.room.height=48", "data.room.frames=6", "data.room.supersample=1",
+        f"data.cache_dir={tmp_path / 'cache'}", "optim.steps=150", "optim.decay_every=0", "filter.enabled=false",
+        "render.samples=16", "log.every=1000", "log.images=0", "log.checkpoint=0"])
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    final = refine.run(cfg, RunContext(run_dir=run_dir, device=torch.device("cpu"), seed=0, resume=False))
+    initial = json.loads((run_dir / "metrics_initial.json").read_text())
+    assert initial["rot_deg"] == pytest.approx(2.0, abs=1e-6) and initial["trans"] == pytest.approx(0.08, abs=1e-6)
+    assert final["rot_deg"] < initial["rot_deg"] / 2.2
+    assert final["trans"] < initial["trans"] / 1.7

@@ -198,7 +198,8 @@ def test_resume_of_a_finished_run_says_so_and_changes_nothing(tmp_path, capsys):
     before = folder_hash(run)
     assert cli_main(["--resume", "--run", str(run)]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[0] == f"run folder: {run}" and out[1].startswith("the run finished on ") and "nothing to resume" in out[1]
+    assert out[0] == f"run folder: {run}"
+    assert out[1].startswith("the run finished on ") and "nothing to resume" in out[1]
     assert folder_hash(run) == before
     (run / "finished.json").unlink()  # an unfinished run (killed after its last checkpoint) still resumes
     assert cli_main(["--resume", "--run", str(run)]) == 0

@@ -44,7 +44,8 @@ def test_properties_are_op_ready_and_differentiable():
     m, n = _points()
     cfg = SceneConfig(learn=["means", "normals", "scales", "opacities", "features"], opacity=None,
                       feature_activation="sigmoid")
-    scene = SurfelScene.from_points(cfg, m, 5 * n, scales=torch.rand(50, 2) + 0.1, opacities=torch.rand(50) * 0.9 + 0.05,
+    scene = SurfelScene.from_points(cfg, m, 5 * n, scales=torch.rand(50, 2) + 0.1,
+                                    opacities=torch.rand(50) * 0.9 + 0.05,
                                     features=0.25)
     assert torch.allclose(scene.normals.norm(dim=-1), torch.ones(50))
     assert bool((scene.scales > 0).all())

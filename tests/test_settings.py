@@ -23,7 +23,7 @@ from typing import Any, Iterator
 
 import pytest
 
-from nsplat.cli import _parse, _configs
+from nsplat.cli import _configs, _parse
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.ops import SplatSettings
 from nsplat.render import RenderConfig

@@ -1,4 +1,4 @@
-"""benchmarks.val_curve: a run folder's val PSNR against training time, finished or stopped by a time limit."""
+"""tools.val_curve: a run folder's val PSNR against training time, finished or stopped by a time limit."""
 from __future__ import annotations
 
 import json

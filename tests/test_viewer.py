@@ -244,7 +244,8 @@ def test_a_run_without_checkpoint_is_refused_in_one_line(run, tmp_path, capsys):
 
 def test_demo_run_is_viewable(tmp_path):
     cfg = tmp_path / "demo.yaml"
-    cfg.write_text(yaml.safe_dump({"task": "demo", "points": 500, "resolution": 24, "views": 2, "render": {"samples": 8}}))
+    cfg.write_text(yaml.safe_dump({"task": "demo", "points": 500, "resolution": 24, "views": 2,
+                                   "render": {"samples": 8}}))
     assert main(["--config", str(cfg), "--run", str(tmp_path / "run")]) == 0
     m = load_run(tmp_path / "run")
     c = m.cameras

@@ -19,8 +19,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from nsplat.data.paths import data_root
 from nsplat.config import ConfigError
+from nsplat.data.paths import data_root
 from nsplat.errors import DataError
 
 #: Shape name → file name inside ``dss_pointclouds/``.

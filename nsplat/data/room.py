@@ -34,8 +34,8 @@ import torch
 
 from nsplat.cameras import intrinsics_from_fov, look_at, perturb_viewmats
 from nsplat.config import require, require_fields
-from nsplat.data.views import PosedViews
 from nsplat.data.raytrace import Box, Material, Plane, Primitive, albedo, camera_rays, intersect
+from nsplat.data.views import PosedViews
 from nsplat.sh import sh_shade
 
 log = logging.getLogger(__name__)

@@ -72,7 +72,8 @@ class CaptureSpec:
         if self.views < 8:
             raise ValueError(f"views: expected >= 8 photos, got {self.views}")
         if self.environment <= self.radius + 1.0:
-            raise ValueError(f"environment: expected a radius > radius + 1 ({self.radius + 1.0}), got {self.environment}")
+            raise ValueError(f"environment: expected a radius > radius + 1 ({self.radius + 1.0}), "
+                             f"got {self.environment}")
 
     def key(self) -> str:
         """Short hash of the spec and :data:`CAPTURE_VERSION` (the cache folder's suffix)."""

@@ -2,7 +2,8 @@
 
 A voxel grid over a bounding box is carved by every view's (slightly dilated) alpha mask: a voxel
 survives when it projects onto coverage ``>= alpha_threshold`` in every view that sees it (in front
-of the camera and inside the image) and enough views see it. The surviving voxels that touch a carved neighbour are the surface; their
+of the camera and inside the image) and enough views see it. The surviving voxels that touch a carved neighbour are
+the surface; their
 normals are the negated gradient of the Gaussian-smoothed occupancy, and their colour is the median
 of the image colours over the views the normal faces. This is a starting point for fitting with the
 op (stage 1 of the neural task), not a reconstruction in itself: concavities stay filled.

@@ -30,7 +30,6 @@ from nsplat.render import RenderConfig, render_views
 from nsplat.scene import ATTRIBUTES, SurfelScene
 from nsplat.view_model import cameras_of, surfel_view
 
-
 #: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
 PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
 
@@ -117,7 +116,8 @@ class FitConfig:
 
 def build(scene: SurfelScene, cfg: FitConfig, seed: int = 0, strategies: list[Strategy] | None = None,
           views: PosedViews | None = None) -> Trainables:
-    """Module ``scene`` (and the strategies' per-point state, e.g. ``density``), Adam ``fit`` (fused: one native loop over the parameters) over its
+    """Module ``scene`` (and the strategies' per-point state, e.g. ``density``), Adam ``fit`` (fused: one native loop
+    over the parameters) over its
     learnable attributes, the epoch scheduler and the generator of the strategies' draws.
 
     ``strategies`` default to ``cfg.strategies()``; each checks that it applies to ``scene`` (and ``views``)."""

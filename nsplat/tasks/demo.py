@@ -12,10 +12,10 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from nsplat.config import require, require_fields
-from nsplat.cameras import intrinsics_from_fov, look_at
-from nsplat.ops.validation import memory_limit
 from nsplat import render as gateway
+from nsplat.cameras import intrinsics_from_fov, look_at
+from nsplat.config import require, require_fields
+from nsplat.ops.validation import memory_limit
 from nsplat.render import RenderConfig, background_of
 from nsplat.report import results
 from nsplat.runctx import RunContext

@@ -102,7 +102,8 @@ class ViewerServer:
         with gui.add_folder("Render"):
             self._mode = gui.add_dropdown("Show", MODES, initial_value=s.mode,
                                           hint="RGB, splatted features (first 3 channels), alpha or depth")
-            self._res = gui.add_slider("Resolution", 16, max(1024, s.resolution), 16, s.resolution, hint="longest image side (px)")
+            self._res = gui.add_slider("Resolution", 16, max(1024, s.resolution), 16, s.resolution,
+                                       hint="longest image side (px)")
             self._samples = gui.add_slider("Samples / px", 1, max(64, s.render.samples), 1, s.render.samples,
                                            hint="per-pixel sample size m")
             eps = min(EPS_CHOICES, key=lambda e: abs(float(e) - s.render.eps))
@@ -116,7 +117,8 @@ class ViewerServer:
 
     def _settings_changed(self) -> None:
         with self._lock:
-            self.settings = dataclasses.replace(self.settings.with_samples(int(self._samples.value), float(self._eps.value)),
+            self.settings = dataclasses.replace(self.settings.with_samples(int(self._samples.value),
+                                                                           float(self._eps.value)),
                                                 mode=self._mode.value, resolution=int(self._res.value))
             self.progressive = bool(self._prog.value)
             self._version += 1
@@ -257,7 +259,8 @@ class ViewerServer:
         pic = self.render_camera(client.camera, use)
         client.scene.set_background_image(pic, format="jpeg", jpeg_quality=90)
         self._stats.content = (f"**{self.model.task or 'scene'}** · {self.model.num_points:,} points  \n"
-                               f"{pic.shape[1]}×{pic.shape[0]} px · m = {use.render.samples} · ε = {use.render.eps:g} · "
+                               f"{pic.shape[1]}×{pic.shape[0]} px · m = {use.render.samples} · "
+                               f"ε = {use.render.eps:g} · "
                                f"{self.last_render_s * 1000:.0f} ms")
         return 1
 

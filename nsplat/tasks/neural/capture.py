@@ -29,8 +29,8 @@ from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError, to_dict
 from nsplat.data.capture import SfmPoints
 from nsplat.data.colmap import load_colmap
-from nsplat.data.transforms_json import load_transforms, point_cloud_path
 from nsplat.data.paths import resolve
+from nsplat.data.transforms_json import load_transforms, point_cloud_path
 from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 from nsplat.tasks.neural.background import depth_range, fit_sphere

@@ -297,7 +297,8 @@ class NeuralConfig:
 
     Attributes:
         steps: optimisation steps; 0: no stage 2 (the stage-1 surfels are the model, evaluated as
-            ``eval_geometry.json`` and returned as the run's metrics: the point-only baseline). batch: training views per step (the global batch: under torchrun
+            ``eval_geometry.json`` and returned as the run's metrics: the point-only baseline). batch: training views
+            per step (the global batch: under torchrun
             each of the P processes renders ``batch / P`` of them, docs/distributed.md).
         chunk: views rendered (and back-propagated) at once by one process; a step's share is rendered
             in chunks of this many views with gradients accumulated (``null``: the whole share at once).

@@ -10,7 +10,8 @@ quantities that move with the world (the frame is the same whatever similarity S
   see near their image centres (:func:`central_weight`: per point, the mean over views of ``1 − r²/2`` where
   it projects inside the image, ``r`` its offset from the principal point in half-image units; the core is
   the points with a weight of at least :data:`CORE_WEIGHT`, i.e. seen near the middle of most views): the
-  object of a turntable, table or orbit capture, the middle of a forward-facing one. With fewer than :data:`MIN_CORE` such points (an
+  object of a turntable, table or orbit capture, the middle of a forward-facing one. With fewer than :data:`MIN_CORE`
+  such points (an
   untextured object in front of a textured backdrop) the centre is the cameras' look-at point (the point
   nearest, in least squares, to all optical axes) when the axes converge (:data:`MIN_SPREAD`), else the
   geometric median of all reliable points;

@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from plyfile import PlyData
 
@@ -237,7 +236,8 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
                           f"{0 if points is None else len(points)}")
     s = cfg.geometry.sfm
     try:
-        sf = sfm_surfels(points, camera_centres(train.viewmats.cpu().double()), min_track=s.min_track, max_error=s.max_error,
+        sf = sfm_surfels(points, camera_centres(train.viewmats.cpu().double()), min_track=s.min_track,
+                         max_error=s.max_error,
                          k=s.k, std_ratio=s.std_ratio)
     except ValueError as exc:
         raise ConfigError(f"geometry.sfm: {exc}") from exc

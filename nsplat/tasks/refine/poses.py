@@ -24,7 +24,8 @@ the renderer reach ξ through ``viewmats``. The optional focal correction multip
 ``exp(φ)`` (one ``φ`` per camera, or one shared by all), reaching ``Ks`` through the op's projection.
 
 Also here: rotation/translation pose errors, used to score refinement (random pose perturbations of a
-given size, which build the benchmarks, are :func:`nsplat.cameras.perturb_viewmats`). When the scene is learnable too, poses are only determined up
+given size, which build the benchmarks, are :func:`nsplat.cameras.perturb_viewmats`). When the scene is learnable too,
+poses are only determined up
 to a common rigid motion of scene and cameras (the gauge), so besides the absolute errors against the
 ground truth there are two gauge-free scores: errors after removing the common rigid offset
 (:func:`align_to_reference`, like the aligned trajectory error of SLAM benchmarks) and relative pose

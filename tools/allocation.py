@@ -3,7 +3,7 @@
 :func:`build_config` builds a config's model(s) exactly as its task does, without data loading or
 training (point clouds and frames are replaced by placeholders of :data:`N_PLACEHOLDER` points and the
 config's camera count); :func:`inventory` lists every parameter and buffer with its shape and whether it
-is learned. ``python -m benchmarks.allocation_table`` writes the table of the shipped configs
+is learned. ``python -m tools.allocation_table`` writes the table of the shipped configs
 (``docs/model_allocation.md``); ``tests/test_allocation.py`` checks it.
 """
 from __future__ import annotations
@@ -110,7 +110,8 @@ def build_neural(cfg: Any) -> tuple[Models, list[str]]:
     colour = f"SH degree {cfg.geometry.sh_degree} surfels" if cfg.geometry.optim.shading == "sh" else "RGB surfels"
     g = cfg.geometry
     sphere = " plus the background sphere's" if g.background.model == "sphere" else ""
-    points = f"N = the points geometry.init: {g.init} starts from (at most geometry.max_points = {g.max_points}){sphere}"
+    points = (f"N = the points geometry.init: {g.init} starts from "
+              f"(at most geometry.max_points = {g.max_points}){sphere}")
     if cfg.neural.steps == 0:
         return {"stage1_scene": stage1["scene"]}, [f"stage 1 (geometry): {colour}; no stage 2 (neural.steps: 0: "
                                                     "the surfels are the model)", points]

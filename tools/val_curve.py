@@ -7,7 +7,7 @@ offset by stage 1's time when the run finished it), with the test metrics when t
 
     timeout 300 python train.py --config configs/lego.yaml --device cuda --run-dir /tmp/lego \\
         geometry.log.validate=720 log.validate=125
-    python -m benchmarks.val_curve /tmp/lego --name gpu_lego_train-h200 --wall-s 300
+    python -m tools.val_curve /tmp/lego --name gpu_lego_train-h200 --wall-s 300
 
 Writes ``benchmarks/results/<name>.json`` and prints the curve as a table.
 """

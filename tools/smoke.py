@@ -1,12 +1,13 @@
-"""CI smoke test of the benchmarks: every script that can run at its smallest size in under a minute runs once.
+"""CI smoke test of the benchmarks and tools: every script that can run at its smallest size in under a minute runs
+once.
 
 Each command of :data:`SMOKE` runs as its own process from the repository root with ``NSPLAT_BENCH_OUT`` set to a
 temporary folder, so nothing under ``benchmarks/results/`` or ``docs/images/`` changes; its numbers are not
 results. A command that needs the data sets (:data:`NEEDS_DATA`) is skipped, and says so, when ``$NSPLAT_DATA``
 does not hold them.
 
-    python -m benchmarks.smoke            # every smoke command (1-2 minutes on 2 cores)
-    python -m benchmarks.smoke op_cpu     # some of them
+    python -m tools.smoke                   # every smoke command (1-2 minutes on 2 cores)
+    python -m tools.smoke benchmarks.op_cpu # some of them
 """
 from __future__ import annotations
 
@@ -20,22 +21,22 @@ import time
 from benchmarks.common import REPO
 from nsplat.data.paths import data_root
 
-#: Script → the arguments of its smallest run.
+#: Script (its module) → the arguments of its smallest run.
 SMOKE: dict[str, list[str]] = {
-    "allocation_table": ["--check"],
-    "op_cpu": ["--smoke", "--repeats", "1"],
-    "op_memory_cpu": ["--smoke"],
-    "op_cuda": ["--device", "cpu", "--tiny", "--reps", "1", "--gsplat", "off", "--sections", "N,res,m"],
-    "estimators": ["--scenes", "random", "--composites", "additive", "--ms", "4", "--groups", "4",
-                   "--per-group", "5"],
-    "properties_soak": ["--scenes", "20", "--no-edges"],
-    "tradeoff": ["--tiny"],
-    "network_levers": ["--sizes", "64", "--reps", "1", "--compile-reps", "0"],
-    "gpu_lego": ["--device", "cpu", "--quick"],
-    "gt_views": ["--smoke"],
+    "tools.allocation_table": ["--check"],
+    "benchmarks.op_cpu": ["--smoke", "--repeats", "1"],
+    "benchmarks.op_memory_cpu": ["--smoke"],
+    "benchmarks.op_cuda": ["--device", "cpu", "--tiny", "--reps", "1", "--gsplat", "off", "--sections", "N,res,m"],
+    "benchmarks.estimators": ["--scenes", "random", "--composites", "additive", "--ms", "4", "--groups", "4",
+                              "--per-group", "5"],
+    "tools.properties_soak": ["--scenes", "20", "--no-edges"],
+    "benchmarks.tradeoff": ["--tiny"],
+    "benchmarks.network_levers": ["--sizes", "64", "--reps", "1", "--compile-reps", "0"],
+    "benchmarks.gpu_lego": ["--device", "cpu", "--quick"],
+    "benchmarks.gt_views": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
-NEEDS_DATA = {"tradeoff": "dss_pointclouds", "gt_views": "dss_pointclouds"}
+NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds"}
 #: Seconds one smoke command may take.
 TIMEOUT_S = 120
 
@@ -54,7 +55,7 @@ def main() -> int:
             if name in NEEDS_DATA and not (data_root() / NEEDS_DATA[name]).is_dir():
                 print(f"{name}: skipped (needs {data_root() / NEEDS_DATA[name]}; nsplat data fetch)", flush=True)
                 continue
-            cmd = [sys.executable, "-m", f"benchmarks.{name}", *SMOKE[name]]
+            cmd = [sys.executable, "-m", name, *SMOKE[name]]
             t0 = time.perf_counter()
             try:
                 proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
@@ -62,7 +63,7 @@ def main() -> int:
             except subprocess.TimeoutExpired:
                 ok, tail = False, f"timed out after {TIMEOUT_S} s"
             print(f"{name}: {'ok' if ok else 'FAILED'} in {time.perf_counter() - t0:.0f} s "
-                  f"(python -m benchmarks.{name} {' '.join(SMOKE[name])})", flush=True)
+                  f"(python -m {name} {' '.join(SMOKE[name])})", flush=True)
             if not ok:
                 failed.append(name)
                 print(tail, flush=True)

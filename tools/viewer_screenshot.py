@@ -1,7 +1,7 @@
 """Screenshot of the web viewer with headless Chromium (docs/images/viewer/*.png). Not run in CI.
 
     apt-get install -y chromium          # Debian's package
-    python -m benchmarks.viewer_screenshot [--run DIR] [--out docs/images/viewer/viewer.png]
+    python -m tools.viewer_screenshot [--run DIR] [--out docs/images/viewer/viewer.png]
 
 Without ``--run`` it first trains a small run of the main job (``python train.py`` with a short
 budget: 4 stage-1 epochs, 60 stage-2 steps; a few minutes on 2 cores). It then serves the run on a

@@ -13,7 +13,7 @@ Three kinds of run, each on the tests' tiny procedural scene (``tests.test_distr
 A failure is recorded with its exit statuses and the tail of each rank's stderr (``terminate called`` /
 SIGABRT is the abort at exit this soak guards against). Writes ``benchmarks/results/distributed_soak.json``.
 
-    python -m benchmarks.distributed_soak --repeats 30
+    python -m tools.distributed_soak --repeats 30
 """
 from __future__ import annotations
 

@@ -5,8 +5,8 @@ domain of docs/op.md, edges included) with a numpy RNG, runs forward and backwar
 property and writes the count, timing and any failures (with the seed that reproduces each) to
 ``benchmarks/results/properties_soak.json``.
 
-    OMP_NUM_THREADS=1 python -m benchmarks.properties_soak --scenes 10000
-    python -m benchmarks.properties_soak --replay 1234      # re-run one failing scene verbosely
+    OMP_NUM_THREADS=1 python -m tools.properties_soak --scenes 10000
+    python -m tools.properties_soak --replay 1234      # re-run one failing scene verbosely
 
 It also runs one-dimensional sweeps to the domain's edges (splat screen size × low-pass, world
 offset, depth scale, opacity, focal length, culled points, image size) and stores, per value,
