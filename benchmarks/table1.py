@@ -171,7 +171,8 @@ def common_args(description: str) -> argparse.Namespace:
 
 
 def write_json(name: str, args: argparse.Namespace, rows: list[dict], extra: dict | None = None) -> Path:
-    """``benchmarks/results/<name>-<setting>.json`` of a reconstruction table (:func:`benchmarks.common.write_result`)."""
+    """``benchmarks/results/<name>-<setting>.json`` of a reconstruction table
+    (:func:`benchmarks.common.write_result`)."""
     payload = {"setting": args.setting, "overrides": SETTINGS[args.setting] + list(args.override),
                "seed": args.seed, "seeds": getattr(args, "seeds", 1), "rows": rows, **(extra or {})}
     return write_result(f"{name}-{args.setting}", payload)
@@ -201,8 +202,9 @@ def pm(values: list[float]) -> str:
 def main() -> None:
     args = common_args(__doc__.splitlines()[0])
     seeds = {m: range(args.seed, args.seed + (args.seeds if m in MULTI_SEED else 1)) for m in METHODS}
-    jobs = [(run_name(shape, method, seed, args.seed), shape, ov, seed) for seed in range(args.seed, args.seed + args.seeds)
-            for shape in args.shapes for method, ov in METHODS.items() if method in args.methods and seed in seeds[method]]
+    jobs = [(run_name(shape, method, seed, args.seed), shape, ov, seed)  # seed-major: a cut run has every row
+            for seed in range(args.seed, args.seed + args.seeds) for shape in args.shapes
+            for method, ov in METHODS.items() if method in args.methods and seed in seeds[method]]
     rows = [r for r in run_all(jobs, "table1", args) if r is not None]
     by = {r["name"]: r for r in rows}
     runs = {(shape, m): [by[n] for n in (run_name(shape, m, s, args.seed) for s in seeds[m]) if n in by]
