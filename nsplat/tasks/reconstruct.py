@@ -3,8 +3,8 @@
 Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`), with their coverage. Init
 (``init.kind``): the surface of the training views' visual hull, or a Fibonacci sphere enclosing the object (the
 paper's). Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder:
-``metrics.json`` (Hausdorff/Chamfer, both
-definitions, see :mod:`nsplat.metrics`), ``reconstruction.ply``, ``renders/*.png`` (GT | result).
+``metrics.json`` (Hausdorff/Chamfer, both definitions, see :mod:`nsplat.metrics`; the held-out PSNR),
+``reconstruction.ply``, ``renders/*.png`` (GT | result).
 Data-parallel under torchrun (the fitter's, docs/distributed.md); rank 0 writes the outputs.
 """
 from __future__ import annotations
