@@ -233,7 +233,7 @@ def test_relative_threshold_moves_points_far_below_the_median(tmp_path, monkeypa
         fit(scene, _views(images, vm, Ks), cfg, RenderConfig(renderer="dense"), tmp_path / str(relative),
             log=LogConfig(checkpoint=100, progress=False))
         assert moved == [expect], (relative, moved)
-    with pytest.raises(ConfigError, match="reposition.relative"):
+    with pytest.raises(ConfigError, match="relative"):
         RepositionConfig(relative=1.0)
 
 

@@ -159,7 +159,7 @@ def test_hull_init_lies_on_the_shape_with_the_asked_count(tmp_path):
         outward = ((means - pc.center) * normals).sum(-1) > 0
         assert float(outward.float().mean()) > 0.95
         assert torch.unique(means, dim=0).shape[0] == count        # repeats are moved, not stacked
-    with pytest.raises(ConfigError, match="init.kind"):
+    with pytest.raises(ConfigError, match="kind"):
         InitConfig(kind="cube")
     with pytest.raises(ConfigError, match="renders"):
         Config(heldout=2, renders=3)

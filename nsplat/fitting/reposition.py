@@ -54,7 +54,7 @@ class RepositionConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, every=">=1", min_weight=">=0", jitter=">=0")
-        require(0 <= self.relative < 1, "reposition.relative", "a value in [0, 1)", self.relative)
+        require(0 <= self.relative < 1, "relative", "a value in [0, 1)", self.relative)
 
 
 def point_contributions(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,

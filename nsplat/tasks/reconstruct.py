@@ -70,9 +70,9 @@ class InitConfig:
     alpha_threshold: float = 0.5
 
     def __post_init__(self) -> None:
-        require(self.kind in INIT_KINDS, "init.kind", f"one of {INIT_KINDS}", self.kind)
+        require(self.kind in INIT_KINDS, "kind", f"one of {INIT_KINDS}", self.kind)
         require_fields(self, count=">=1", radius=">0", albedo="unit", scale=">0", grid=">=2")
-        require(0 < self.alpha_threshold < 1, "init.alpha_threshold", "a value in (0, 1)", self.alpha_threshold)
+        require(0 < self.alpha_threshold < 1, "alpha_threshold", "a value in (0, 1)", self.alpha_threshold)
 
 
 @dataclasses.dataclass
