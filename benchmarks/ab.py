@@ -49,7 +49,7 @@ from nsplat.ops.library import camera_streams
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import geometry_scene_config
+from nsplat.tasks.neural.starts import geometry_scene_config
 
 SCENES = {"default": ("configs/default.yaml", "runs/default/geometry.ply"),
           "lego": ("configs/lego_splat_only.yaml", "runs/lego_splat_only/geometry.ply")}

@@ -45,7 +45,7 @@ from nsplat.render import render_views
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import geometry_scene_config, initial_geometry
+from nsplat.tasks.neural.starts import geometry_scene_config, initial_geometry
 from nsplat.viewer.runs import load_run
 from tests.gs_reference import gaussians_of_ply, render_3dgs
 

@@ -51,7 +51,7 @@ from nsplat.ops.validation import inclusion_for
 from nsplat.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import initial_geometry
+from nsplat.tasks.neural.starts import initial_geometry
 
 #: (resolution, views) → the issue's GPU target for the step, in ms.
 TARGETS = {(200, 1): 8.0, (800, 1): 15.0, (200, 8): 20.0}

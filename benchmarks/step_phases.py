@@ -29,7 +29,7 @@ from nsplat.scene import SurfelScene
 from nsplat.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import geometry_scene_config
+from nsplat.tasks.neural.starts import geometry_scene_config
 
 
 def main() -> None:

@@ -32,8 +32,8 @@ from nsplat.tasks.neural.background import project
 from nsplat.tasks.neural.capture import prepare, with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import _sfm_points, initial_geometry
 from nsplat.tasks.neural.sfm_init import fill_box
+from nsplat.tasks.neural.starts import _sfm_points, initial_geometry
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = CaptureSpec(resolution=128, views=24)

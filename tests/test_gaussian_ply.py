@@ -28,7 +28,7 @@ from nsplat.scene import SurfelScene
 from nsplat.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import geometry_scene_config, initial_geometry
+from nsplat.tasks.neural.starts import geometry_scene_config, initial_geometry
 from tests.gs_reference import gaussians_of_ply, render_3dgs, sh_to_rgb
 from tests.test_neural import _tiny
 

@@ -163,7 +163,7 @@ def test_lego_400_config_is_lego_at_full_resolution_on_an_hour():
 def test_random_start_draws_max_points_in_the_box(tmp_path):
     """``geometry.init: random`` draws ``max_points`` points in ``geometry.bbox`` instead of the hull's."""
     from nsplat.tasks.neural.data import load_views
-    from nsplat.tasks.neural.geometry import initial_geometry
+    from nsplat.tasks.neural.starts import initial_geometry
 
     def start(**geometry) -> torch.Tensor:
         raw = _tiny(tmp_path / "cache")

@@ -24,7 +24,7 @@ from nsplat.errors import DataError
 from nsplat.tasks.neural.capture import prepare
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import initial_geometry, start_kind
+from nsplat.tasks.neural.starts import initial_geometry, start_kind
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 24

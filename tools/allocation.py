@@ -20,8 +20,8 @@ from nsplat.config import load_config, read_yaml
 from nsplat.data.views import PosedViews
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks import get_task, neural, reconstruct, refine
-from nsplat.tasks.neural.geometry import geometry_scene_config
 from nsplat.tasks.neural.model import neural_scene_config
+from nsplat.tasks.neural.starts import geometry_scene_config
 
 #: Placeholder point count; a tensor dimension equal to it is printed as ``N``.
 N_PLACEHOLDER = 1009

@@ -1,8 +1,9 @@
 """Task ``neural``: neural point rendering (paper §4 "Neural Rendering").
 
 Stage 1 (geometry, :mod:`~nsplat.tasks.neural.geometry`): RGB surfels initialised on the visual hull of the
-training silhouettes (or the SfM points of a capture, a PLY, random points) and fitted to the training views
-with the op (:func:`nsplat.fitting.fit`); written to ``geometry.ply``.
+training silhouettes (or the SfM points of a capture, a PLY, random points; :mod:`~nsplat.tasks.neural.starts`)
+and fitted to the training views with the op (:func:`nsplat.fitting.fit`); written to ``geometry.ply``. A start
+the cameras cannot see, or a fit that learns nothing, stops with a diagnosis (:mod:`~nsplat.tasks.neural.diagnosis`).
 
 Stage 2 (neural, :mod:`~nsplat.tasks.neural.training`): every point gets ``C`` learned features (the first
 three start from its stage-1 colour); the op splats them (plus coverage) into a feature image that a U-Net
@@ -40,8 +41,9 @@ from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.evaluation import evaluate_geometry, evaluate_split, write_path_videos
-from nsplat.tasks.neural.geometry import fit_geometry, geometry_scene_config
+from nsplat.tasks.neural.geometry import fit_geometry
 from nsplat.tasks.neural.model import Renderer, load_model, neural_scene_config, neural_scene_from, neural_view
+from nsplat.tasks.neural.starts import geometry_scene_config
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
 from nsplat.video import RenderRequest
 from nsplat.view_model import ViewModel, cameras_of, surfel_view

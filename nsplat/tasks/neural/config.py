@@ -198,7 +198,7 @@ class GeometryConfig:
             capture, filtered, with plane-fit normals: ``sfm``), ``ply`` (a previous run's ``geometry.ply``
             with this stage's attributes, a 3D Gaussian splatting PLY such as ``export --format 3dgs``
             writes, or any point cloud with ``x y z`` and optional normals and colours:
-            :func:`nsplat.tasks.neural.geometry._ply_scene`) or ``random`` (``max_points`` points uniform
+            :func:`nsplat.tasks.neural.starts._ply_scene`) or ``random`` (``max_points`` points uniform
             in ``bbox``, random normals, grey: a start without silhouettes or SfM points) or ``auto``:
             ``sfm`` for a COLMAP capture; for a ``transforms`` capture the point cloud its ``ply_file_path``
             names (moved with the cameras), else the hull when ``data.capture.masks`` is set, else

@@ -29,8 +29,8 @@ from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import to_training_frame
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
-from nsplat.tasks.neural.geometry import geometry_scene_config
 from nsplat.tasks.neural.model import Renderer
+from nsplat.tasks.neural.starts import geometry_scene_config
 from nsplat.video import RenderRequest, depth_picture, normal_picture, to_uint8, write_video
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,7 @@ from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.sh import view_colour
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
-from nsplat.tasks.neural.geometry import geometry_scene_config
+from nsplat.tasks.neural.starts import geometry_scene_config
 from nsplat.view_model import TrainingCameras, ViewModel
 
 
