@@ -11,8 +11,8 @@ interrupted one resumes from its checkpoint). Methods, all with the same data, i
 
 ``--seeds 3`` runs ``ht`` and ``sampled`` with 3 seeds (the table shows mean ± std) and the others with one.
 
-Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe, about 5 minutes a run),
-``recipe-64`` (the recipe at 64², about 2 minutes a run),
+Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe at 256², 3–6 minutes a run on one thread),
+``recipe-64`` (64², 45 epochs, every rate 0.01: about 2 minutes a run, the full comparison),
 ``cpu`` (default; the earlier budget of 32² images and 80 steps, see docs/results.md),
 ``cpu-long`` (the same with 48 views and 400 steps: how the comparison moves with optimisation time) or
 ``paper`` (124 views, 300 epochs, batch 12, lr 0.01, repositioning every epoch; for a big machine).
@@ -68,10 +68,11 @@ def learning_rate(lr: float) -> list[str]:
 
 #: Log cadences are in steps: ``validate`` = shape metrics every 5 or 10 epochs of ``views / batch`` steps.
 SETTINGS = {
-    # the shipped configs as they are: the CPU recipe (about 5 minutes a run on 2 cores)
+    # the shipped configs as they are: the CPU recipe (3-6 minutes a run on one thread)
     "recipe": [],
-    # the recipe at 64x64 (about 2 minutes a run): Table 1's method comparison within this session's CPU time
-    "recipe-64": ["data.width=64", "data.height=64", "init.grid=64"],
+    # 64x64 images, 45 epochs, the hull at 64^3, every rate 0.01 (about 2 minutes a run): Table 1's full method
+    # comparison, every shape and seed, within a session's CPU time
+    "recipe-64": ["data.width=64", "data.height=64", "init.grid=64", "optim.epochs=45", *learning_rate(0.01)],
     "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
             *learning_rate(0.03), "optim.reposition.every=5", "log.validate=20", "log.checkpoint=4"],
     # the cpu budget with 5x the steps and twice the views: how the comparison moves with optimisation time

@@ -1,6 +1,6 @@
 """Table 2: influence of the per-pixel sample count m (1, 3, 5, 20, 40) on bunny reconstruction (estimator ht).
 
-Same harness and settings as :mod:`benchmarks.table1` (``--setting cpu|paper``). Prints a Markdown
+Same harness and settings as :mod:`benchmarks.table1` (``--setting``). Prints a Markdown
 table beside the paper's numbers, writes ``benchmarks/results/table2-<setting>.json`` and the plot
 ``docs/images/reconstruct/ablation_samples-<setting>.png``.
 
@@ -9,7 +9,9 @@ table beside the paper's numbers, writes ``benchmarks/results/table2-<setting>.j
 from __future__ import annotations
 
 from benchmarks.ablation import report
-from benchmarks.table1 import REPO, common_args, run_all
+from benchmarks.table1 import REPO, SETTINGS, common_args, run_all
+from nsplat.config import load_config, read_yaml
+from nsplat.tasks.reconstruct import Config
 
 SAMPLES = (1, 3, 5, 20, 40)
 #: The paper's Table 2 (HD, CD as printed).
@@ -20,10 +22,13 @@ def main() -> None:
     args = common_args(__doc__.splitlines()[0])
     jobs = [(f"bunny-m{m}", "bunny", ["render.renderer=splat", "render.estimator=ht", f"render.samples={m}"])
             for m in SAMPLES]
-    # m = 40 with ht is exactly Table 1's bunny/ht run (same config): reuse it rather than recompute.
+    # Table 1's bunny/ht run is this table's row at the setting's own m (same config): reuse it rather than recompute.
+    cfg = load_config(Config, read_yaml(REPO / "configs" / "reconstruct_bunny.yaml"),
+                      SETTINGS[args.setting] + list(args.override))
     shared = REPO / "runs" / "bench" / f"table1-{args.setting}" / "bunny-ht"
-    mine = REPO / "runs" / "bench" / f"table2-{args.setting}" / "bunny-m40"
-    if (shared / "metrics.json").is_file() and not mine.exists() and not args.override:
+    mine = REPO / "runs" / "bench" / f"table2-{args.setting}" / f"bunny-m{cfg.render.samples}"
+    reusable = cfg.render.samples in SAMPLES and (shared / "metrics.json").is_file()
+    if reusable and not mine.exists() and not args.override:
         mine.parent.mkdir(parents=True, exist_ok=True)
         mine.symlink_to(shared, target_is_directory=True)
     rows = run_all(jobs, "table2", args)

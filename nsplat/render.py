@@ -47,7 +47,7 @@ class RenderConfig:
         near, far: depth clipping range. lowpass: screen-space low-pass variance (px²).
         deterministic: fixed-order backward (``false``: atomics on CPU, faster and not bitwise reproducible;
             measured in docs/tradeoffs.md). hermite_order, hermite_tol: the sampler's Hermite expansions.
-        cutoff: truncation radius in σ for ``truncated``. tile: its tile size in pixels.
+        cutoff: truncation radius in σ for ``truncated``.
     """
 
     renderer: Literal["splat", "dense", "truncated"] = "splat"
@@ -65,10 +65,9 @@ class RenderConfig:
     hermite_order: int = SplatSettings.hermite_order
     hermite_tol: float = SplatSettings.hermite_tol
     cutoff: float = 3.0
-    tile: int = 16
 
     def __post_init__(self) -> None:
-        require_fields(self, samples=">=1", eps="prob", near=">0", lowpass=">=0", cutoff=">0", tile=">=1",
+        require_fields(self, samples=">=1", eps="prob", near=">0", lowpass=">=0", cutoff=">0",
                        hermite_order=">=0", hermite_tol=">0")
         require(self.far > self.near, "far", f"a value > near ({self.near})", self.far)
         require(self.renderer != "truncated" or self.composite == "alpha", "composite",
@@ -135,7 +134,7 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
                            composite=cfg.composite, **common)
     if cfg.renderer == "truncated":
         return splat_truncated(means, normals, scales, opacities, features, viewmats, Ks, width, height,
-                               cutoff=cfg.cutoff, tile=cfg.tile, **common)
+                               cutoff=cfg.cutoff, **common)
     raise ValueError(f"render.renderer: expected one of {RENDERERS}, got {cfg.renderer!r}")
 
 

@@ -77,11 +77,23 @@ def test_truncated_equals_dense_without_truncation():
     args = _small_scene()
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
     d = splat_dense(*args, 20, 16, background=bg)
-    for tile in (4, 7):
-        t = splat_truncated(*args, 20, 16, cutoff=50.0, background=bg, tile=tile)
-        assert torch.allclose(t.image, d.image, atol=1e-10)
-        assert torch.allclose(t.alpha, d.alpha, atol=1e-10)
-        assert torch.allclose(t.depth, d.depth, atol=1e-10)
+    t = splat_truncated(*args, 20, 16, cutoff=50.0, background=bg)
+    assert torch.allclose(t.image, d.image, atol=1e-10)
+    assert torch.allclose(t.alpha, d.alpha, atol=1e-10)
+    assert torch.allclose(t.depth, d.depth, atol=1e-10)
+
+
+def test_truncated_gradients_equal_dense_without_truncation():
+    means, normals, scales, opac, feats, vm, Ks = _small_scene()
+    w = torch.rand(2, 16, 20, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grads = []
+    for render in (lambda *a: splat_dense(*a), lambda *a: splat_truncated(*a, cutoff=50.0)):
+        leaves = [t.clone().requires_grad_(True) for t in (means, normals, scales, opac, feats)]
+        out = render(*leaves, vm, Ks, 20, 16)
+        ((out.image * w).sum() + out.depth.sum()).backward()
+        grads.append([t.grad for t in leaves])
+    for name, gd, gt in zip(("means", "normals", "scales", "opacities", "features"), *grads):
+        assert torch.allclose(gt, gd, rtol=1e-9, atol=1e-12), name
 
 
 def test_truncated_cuts_kernels_and_gradients_are_local():
