@@ -35,9 +35,9 @@ def measure(shape: str, overrides: list[str], dense: bool) -> dict:
         data.cache_dir = cache
         t0, c0 = time.perf_counter(), time.process_time()
         images, _, _, _ = cached_gt_images(pc, data, rc, data.views)
-        held, _, _, _ = cached_gt_images(pc, data, rc, max(cfg.renders, 1), offset=HELDOUT_OFFSET, tag="heldout")
+        held, _, _, _ = cached_gt_images(pc, data, rc, cfg.heldout, offset=HELDOUT_OFFSET, tag="heldout")
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    row = {"shape": shape, "points": pc.points.shape[0], "views": data.views, "heldout": max(cfg.renders, 1),
+    row = {"shape": shape, "points": pc.points.shape[0], "views": data.views, "heldout": cfg.heldout,
            "resolution": [data.width, data.height], "gt_tol": data.gt_tol, "wall_s": wall, "cpu_s": cpu}
     if dense:
         V, K = view_cameras(1, pc, data)
@@ -61,7 +61,7 @@ def main() -> int:
     args = p.parse_args()
     shapes, overrides = args.shapes, list(args.set)
     if args.smoke:
-        shapes, overrides = ["bunny"], ["data.views=8", "data.width=64", "data.height=64", "renders=1"]
+        shapes, overrides = ["bunny"], ["data.views=8", "data.width=64", "data.height=64", "heldout=1", "renders=1"]
     rows = [measure(s, overrides, dense=not (args.no_dense or args.smoke)) for s in shapes]
     table = markdown(["shape", "points", "views (train + held-out)", "resolution", "wall s", "CPU s",
                       "dense s/view", "max |tiled − dense|"],
