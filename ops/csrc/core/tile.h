@@ -264,7 +264,8 @@ struct LaneStats {
 // search. Near items are binned by their bound at the pixel, far items by their (larger) bound over the tile; a
 // bin's near items are visited before its far ones, each in Morton order. The near items' bins go to one byte
 // each at bin8[i * bin8_stride] (a tile's pixels interleave their bytes; each visited bin sweeps them: a per-pixel
-// int scratch would not fit on a GPU). key/idx: the lane's m-entry heap (original point ids).
+// int scratch would not fit on a GPU). key/idx: the lane's m-entry heap (original point ids), entry j at
+// [j * heap_stride] (sps.h).
 //
 // Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
 // the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
@@ -273,7 +274,7 @@ struct LaneStats {
 // local memory): the bin tops and the bins' first items are recomputed in the loop, bit for bit.
 NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
                             const Draw& draw, int m, double log_eps, double floor, int lane, int lanes, double* key,
-                            int* idx, uint8_t* bin8, int64_t bin8_stride) {
+                            int* idx, int64_t heap_stride, uint8_t* bin8, int64_t bin8_stride) {
   LaneStats out{{0.0, INFINITY, 0, 0, true}, 0.0, 0, false};
   int near[kBins], far[kBins], far_all[kBins];  // the lane's items per bin; every far item per bin
   for (int b = 0; b < kBins; ++b) near[b] = far[b] = far_all[b] = 0;
@@ -316,7 +317,7 @@ NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int
     out.bound = suffix[0];
     return out;
   }
-  PixelState S = pixel_state(key, idx, m, log_eps);
+  PixelState S = pixel_state(key, idx, heap_stride, m, log_eps);
   int stop = kGoOn;
   int far_at = n_near;  // bin b's first far item
   t = top1;

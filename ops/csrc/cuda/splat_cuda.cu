@@ -349,14 +349,17 @@ __global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, in
 constexpr int kTilePixels = kTileSize * kTileSize;
 
 // One camera's pixel pass (sample_kernel, then merge_kernel with several lanes): its tree, splats, tile lists and
-// outputs. `log_eps` is the log of a lane's budget eps / lanes; `key` and `lane_idx` hold each pixel's heaps
-// (pixels x lanes x m; lane_idx and lane_stats only with several lanes).
+// outputs. `log_eps` is the log of a lane's budget eps / lanes. The heaps interleave (sps.h): heap h's entry j at
+// key[j * heaps + h] and heap_idx[j * heaps + h], heap h = (t lanes + lane) kTilePixels + l for lane `lane` of
+// pixel l of tile t, so that consecutive threads of the pixel kernels access consecutive entries. With several
+// lanes, lane_stats[h] holds each lane's LaneStats and merged_key / merged_idx the merged heaps, pixel l of tile t
+// at entry j * tiles kTilePixels + t kTilePixels + l.
 template <typename S>
 struct PixelPass {
   TreeView tv;
   SplatsView<S> sv;
   const double* K;
-  int64_t width, height, tiles_x;
+  int64_t width, height, tiles_x, tiles;
   int m, lanes, inclusion;
   double log_eps;
   uint64_t seed;
@@ -367,51 +370,67 @@ struct PixelPass {
   const int* near_counts;
   uint8_t* bin8;
   double* key;
-  int* lane_idx;
+  int* heap_idx;
+  int64_t heaps;
   LaneStats* lane_stats;
+  double* merged_key;
+  int* merged_idx;
   int* idx;  // [pixels x m] outputs
   S* prob;
   S* total;  // [pixels]
   int* work;
 };
 
+// Pixel l (< kTilePixels) of tile t: its coordinates and whether it lies inside the image.
+struct TilePixel {
+  int64_t px, py, p;
+  bool inside;
+};
+
+template <typename S>
+__device__ __forceinline__ TilePixel tile_pixel(const PixelPass<S>& pp, int64_t t, int l) {
+  TilePixel q;
+  q.px = (t % pp.tiles_x) * kTileSize + l % kTileSize;
+  q.py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
+  q.inside = q.px < pp.width && q.py < pp.height;
+  q.p = q.py * pp.width + q.px;
+  return q;
+}
+
 // Sampling of camera b over tiles [t0, t1), `lanes` threads per pixel (tile.h, "Lanes"): thread g takes tile
 // t0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the tile, so that the
-// 16 threads of a (tile, lane) read the same items (idle past the image's edge). Near-item bins go to `bin8`,
-// the tile's pixels' bytes interleaved: item i of tile t, pixel l at bin8[(offsets[t] - offsets[t0] + i) *
-// kTilePixels + l] (item i belongs to lane i % lanes: each byte has one writer). With one lane the pixel is
-// finished here (its heap in pp.key); with several each lane leaves its heap in pp.key / pp.lane_idx
-// [pixels x lanes x m] and its LaneStats in pp.lane_stats [pixels x lanes] for merge_kernel.
+// 16 threads of a (tile, lane) read the same items (idle past the image's edge), and heap h = t0 lanes kTilePixels
+// + g. Near-item bins go to `bin8`, the tile's pixels' bytes interleaved: item i of tile t, pixel l at
+// bin8[(offsets[t] - offsets[t0] + i) * kTilePixels + l] (item i belongs to lane i % lanes: each byte has one
+// writer). With one lane the pixel is finished here; with several each lane leaves its heap and its LaneStats
+// for merge_kernel.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
   const int m = pp.m, lanes = pp.lanes;
   const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
   NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
-    const int64_t t = t0 + g / per_tile;
+    const int64_t t = t0 + g / per_tile, h = t0 * per_tile + g;
     const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
-    if (px >= pp.width || py >= pp.height) continue;
-    const int64_t p = py * pp.width + px;
-    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
+    const TilePixel q = tile_pixel(pp, t, l);
+    if (!q.inside) continue;
+    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+    const Draw draw = pixel_draw(pp.seed, pp.camera, q.p, pp.width, pp.stratified);
     const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
     uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
     const TileItem* items = pp.items + pp.offsets[t];
     if (lanes == 1) {
-      int* idx = pp.idx + p * m;
-      double* key = pp.key + p * m;
       const LaneStats ls = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal, 0, 1,
-                                       key, idx, bins, kTilePixels);
+                                       pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
       const Ray ray = pixel_ray(pp.K, u, v);
       finalize_pixel(pp.sv, u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
-                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, key, idx, pp.prob + p * m);
-      pp.total[p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
-      pp.work[p] = ls.px.evaluated;
+                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, pp.key + h, pp.heap_idx + h,
+                     pp.heaps, pp.idx + q.p * m, pp.prob + q.p * m);
+      pp.total[q.p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
+      pp.work[q.p] = ls.px.evaluated;
     } else {
-      const int64_t o = p * lanes + lane;
-      pp.lane_stats[o] = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
-                                     lane, lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
+      pp.lane_stats[h] = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
+                                     lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
     }
   }
 }
@@ -419,26 +438,24 @@ __global__ void __launch_bounds__(kPixelThreads)
 // The lanes' heaps of each pixel of tiles [t0, t1) merged into its sample (tile.h, "Lanes"), one thread per
 // pixel: a pixel whose lanes' bounds sum below kMinTotal stays empty; otherwise every lane stopped by its floor
 // test searches again without it, the lanes' heaps are sorted and merged by (key, id) into the m smallest, and
-// xi_(m+1) is the smallest key left (the next heap entry or a lane's own threshold). `merged` is a pixels x m
-// double scratch.
+// xi_(m+1) is the smallest key left (the next heap entry or a lane's own threshold).
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    merge_kernel(PixelPass<S> pp, double* __restrict__ merged, int64_t t0, int64_t t1) {
+    merge_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
   const int m = pp.m, lanes = pp.lanes;
-  const double* lane_key = pp.key;
-  const int* lane_idx = pp.lane_idx;
+  const int64_t H = pp.heaps, HM = pp.tiles * kTilePixels;
   NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
     const int64_t t = t0 + g / kTilePixels;
     const int l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
-    if (px >= pp.width || py >= pp.height) continue;
-    const int64_t p = py * pp.width + px;
-    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    LaneStats* ls = pp.lane_stats + p * lanes;
+    const TilePixel q = tile_pixel(pp, t, l);
+    if (!q.inside) continue;
+    const int64_t p = q.p, h0 = t * lanes * kTilePixels + l, hm = t * kTilePixels + l;
+    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+    LaneStats* ls = pp.lane_stats;
     double bound = 0.0;
-    for (int j = 0; j < lanes; ++j) bound += ls[j].bound;
-    double* key = merged + p * m;
-    int* idx = pp.idx + p * m;
+    for (int j = 0; j < lanes; ++j) bound += ls[h0 + j * kTilePixels].bound;
+    double* key = pp.merged_key + hm;
+    int* idx = pp.merged_idx + hm;
     const Ray ray = pixel_ray(pp.K, u, v);
     int cnt = 0, evaluated = 0;
     double total = 0.0, rest = INFINITY;
@@ -449,42 +466,41 @@ __global__ void __launch_bounds__(kPixelThreads)
       uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
       int at[kMaxPixelLanes];
       for (int j = 0; j < lanes; ++j) {
-        const int64_t o = p * lanes + j;
-        if (ls[j].floored)
-          ls[j] = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, m, pp.log_eps, 0.0, j,
-                              lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
-        heap_sort(pp.key + o * m, pp.lane_idx + o * m, ls[j].cnt);
+        const int64_t h = h0 + j * kTilePixels;
+        if (ls[h].floored)
+          ls[h] = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, m, pp.log_eps, 0.0, j,
+                              lanes, pp.key + h, pp.heap_idx + h, H, bins, kTilePixels);
+        heap_sort(pp.key + h, pp.heap_idx + h, H, ls[h].cnt);
         at[j] = 0;
-        total += ls[j].px.total;
-        evaluated += ls[j].px.evaluated;
-        exhaustive = exhaustive && ls[j].px.exhaustive;
-        rest = dmin(rest, ls[j].px.rest);
+        total += ls[h].px.total;
+        evaluated += ls[h].px.evaluated;
+        exhaustive = exhaustive && ls[h].px.exhaustive;
+        rest = dmin(rest, ls[h].px.rest);
       }
       // k-way merge of the sorted heaps; then the smallest entry left bounds xi_(m+1) too
       for (; cnt <= m; ++cnt) {
         int best = -1;
         for (int j = 0; j < lanes; ++j) {
-          if (at[j] == ls[j].cnt) continue;
-          const int64_t e = (p * lanes + j) * m + at[j];
-          if (best < 0 || key_less(lane_key[e], lane_idx[e], lane_key[(p * lanes + best) * m + at[best]],
-                                   lane_idx[(p * lanes + best) * m + at[best]]))
-            best = j;
+          if (at[j] == ls[h0 + j * kTilePixels].cnt) continue;
+          const int64_t e = at[j] * H + h0 + j * kTilePixels;
+          const int64_t eb = best < 0 ? 0 : at[best] * H + h0 + best * kTilePixels;
+          if (best < 0 || key_less(pp.key[e], pp.heap_idx[e], pp.key[eb], pp.heap_idx[eb])) best = j;
         }
         if (best < 0) break;
-        const int64_t e = (p * lanes + best) * m + at[best];
+        const int64_t e = at[best] * H + h0 + best * kTilePixels;
         if (cnt == m) {
-          rest = dmin(rest, lane_key[e]);
+          rest = dmin(rest, pp.key[e]);
           break;
         }
-        key[cnt] = lane_key[e];
-        idx[cnt] = lane_idx[e];
+        key[cnt * HM] = pp.key[e];
+        idx[cnt * HM] = pp.heap_idx[e];
         ++at[best];
       }
     } else {
-      for (int j = 0; j < lanes; ++j) evaluated += ls[j].px.evaluated;
+      for (int j = 0; j < lanes; ++j) evaluated += ls[h0 + j * kTilePixels].px.evaluated;
     }
-    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion, key, idx,
-                   pp.prob + p * m);
+    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion, key, idx, HM,
+                   pp.idx + p * m, pp.prob + p * m);
     pp.total[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
     pp.work[p] = evaluated;
   }
@@ -630,17 +646,20 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   if (P == 0 || B == 0) return {indices, probs, total, work};
   const int lanes = pixel_lanes(P, m);
-  // per-pixel heaps, reused by every camera: one per lane (lanes > 1: merged into `merged`)
-  at::Tensor key_scratch = at::empty({P * lanes * m}, opts.dtype(at::kDouble));
-  at::Tensor lane_idx, lane_stats, merged;
+  const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
+  // per-pixel heaps, reused by every camera: one per lane and tile pixel, interleaved (PixelPass); with several
+  // lanes their LaneStats and the merged heaps
+  const int64_t heaps = tiles * lanes * kTilePixels;
+  at::Tensor key_scratch = at::empty({heaps * m}, opts.dtype(at::kDouble));
+  at::Tensor heap_idx = at::empty({heaps * m}, opts.dtype(at::kInt));
+  at::Tensor lane_stats, merged_key, merged_idx;
   if (lanes > 1) {
-    lane_idx = at::empty({P * lanes * m}, opts.dtype(at::kInt));
-    lane_stats = bytes(P * lanes * static_cast<int64_t>(sizeof(LaneStats)), opts);
-    merged = at::empty({P * m}, opts.dtype(at::kDouble));
+    lane_stats = bytes(heaps * static_cast<int64_t>(sizeof(LaneStats)), opts);
+    merged_key = at::empty({tiles * kTilePixels * m}, opts.dtype(at::kDouble));
+    merged_idx = at::empty({tiles * kTilePixels * m}, opts.dtype(at::kInt));
   }
   const double log_eps = std::log(eps), lane_log_eps = std::log(eps / lanes);
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
-  const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
   const int64_t* st = streams.data_ptr<int64_t>();  // (seed, camera) of each camera, on the host
   const auto i64 = opts.dtype(at::kLong);
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
@@ -698,11 +717,13 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       // is a chunk of its own)
       const int64_t chunk_items = std::max<int64_t>(kBinScratchBytes / kTilePixels, 1);
       at::Tensor bin8 = bytes(std::min(n_items, chunk_items) * kTilePixels, opts);
-      PixelPass<S> pass{tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, tiles_x, static_cast<int>(m),
-                        lanes, static_cast<int>(inclusion), lane_log_eps, static_cast<uint64_t>(st[2 * b]),
-                        st[2 * b + 1], stratified, as<TileItem>(items), offsets, near_counts[b].data_ptr<int>(),
-                        nullptr, key_scratch.data_ptr<double>(), lanes > 1 ? lane_idx.data_ptr<int>() : nullptr,
-                        lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, indices.data_ptr<int>() + b * P * m,
+      PixelPass<S> pass{tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, tiles_x, tiles,
+                        static_cast<int>(m), lanes, static_cast<int>(inclusion), lane_log_eps,
+                        static_cast<uint64_t>(st[2 * b]), st[2 * b + 1], stratified, as<TileItem>(items), offsets,
+                        near_counts[b].data_ptr<int>(), nullptr, key_scratch.data_ptr<double>(),
+                        heap_idx.data_ptr<int>(), heaps, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr,
+                        lanes > 1 ? merged_key.data_ptr<double>() : nullptr,
+                        lanes > 1 ? merged_idx.data_ptr<int>() : nullptr, indices.data_ptr<int>() + b * P * m,
                         probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P};
       for (int64_t t0 = 0; t0 < tiles;) {
         int64_t t1 = t0 + 1;
@@ -714,7 +735,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
         NS_LAUNCH_CHECK();
         if (lanes > 1) {
           NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream, pass,
-                    merged.data_ptr<double>(), t0, t1);
+                    t0, t1);
           NS_LAUNCH_CHECK();
         }
         t0 = t1;
