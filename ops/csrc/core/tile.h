@@ -29,7 +29,11 @@
 // so P_total xi_(m+1) <= sum_j P_j xi_j < K eps / K = eps: the same guarantee. A lane stopped by its floor test
 // has pruned mass outside its budget: when the lanes' bounds (visited + P_j) sum below kMinTotal the pixel is
 // certainly below the floor and stays empty; otherwise each such lane searches again without the floor test.
-// So a pixel's result is that of lanes without floor tests, or empty when certified below the floor.
+// So a pixel's result is that of lanes without floor tests, or empty when certified below the floor. On a GPU
+// (cuda/splat_cuda.cu) the lanes of a pixel are threads of one kernel, then of the merge kernels: one that re-searches
+// and sorts each lane's heap, one that writes each heap entry at its rank in the pixel's merged order (its index plus
+// the other lanes' entries before it, by binary search; rank m is xi_(m+1)'s candidate), and one per pixel that
+// sums the lanes' stats: the result of merging the sorted heaps one entry at a time.
 #pragma once
 #include "sps.h"
 

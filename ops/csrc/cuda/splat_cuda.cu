@@ -4,7 +4,9 @@
 //   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists (two reads of
 //                                   sizes back to the host per call, whatever the cameras), then one
 //                                   or more threads per pixel (lanes, tile.h), a tile's pixels on consecutive
-//                                   threads; with several lanes a merge kernel, one thread per pixel
+//                                   threads, each with its heap interleaved with its neighbours' (PixelPass);
+//                                   with several lanes a merge over (pixel, lane) threads, each lane's entries
+//                                   placed at their ranks among the pixel's lanes, then one thread per pixel
 //   composite_forward_cuda          one thread per (camera, pixel)
 //   composite_backward_pixels_cuda  pass 1, one thread per (camera, pixel)
 //   composite_backward_points_cuda  pass 2, one thread per point over its entries sorted by (point, camera)
@@ -375,6 +377,7 @@ struct PixelPass {
   LaneStats* lane_stats;
   double* merged_key;
   int* merged_idx;
+  double* merged_rest;
   int* idx;  // [pixels x m] outputs
   S* prob;
   S* total;  // [pixels]
@@ -435,74 +438,141 @@ __global__ void __launch_bounds__(kPixelThreads)
   }
 }
 
-// The lanes' heaps of each pixel of tiles [t0, t1) merged into its sample (tile.h, "Lanes"), one thread per
-// pixel: a pixel whose lanes' bounds sum below kMinTotal stays empty; otherwise every lane stopped by its floor
-// test searches again without it, the lanes' heaps are sorted and merged by (key, id) into the m smallest, and
-// xi_(m+1) is the smallest key left (the next heap entry or a lane's own threshold).
+// The merge of the lanes' heaps into each pixel's sample (tile.h, "Lanes") over tiles [t0, t1), in three kernels:
+// merge_prepare_kernel and merge_rank_kernel with sample_kernel's threads (one per pixel and lane), then
+// merge_finish_kernel with one thread per pixel. A pixel whose lanes' bounds sum below kMinTotal stays empty;
+// otherwise every lane stopped by its floor test searches again without it, and the lanes' sorted heaps merge by
+// (key, id) into the m smallest, xi_(m+1) being the smallest key left (the (m+1)-th smallest heap entry or a
+// lane's own threshold).
+
+// Sum of the bounds of the lanes of the pixel whose lane 0 has heap h0 (in lane order).
+__device__ __forceinline__ double lanes_bound(const LaneStats* ls, int64_t h0, int lanes) {
+  double bound = 0.0;
+  for (int j = 0; j < lanes; ++j) bound += ls[h0 + j * kTilePixels].bound;
+  return bound;
+}
+
+// Each lane of a pixel that is not certified below the floor: searches again without the floor test if its floor
+// test stopped it, then sorts its heap; each lane of a certified pixel: an empty heap (cnt = 0). A lane rewrites
+// only the px and cnt of its own LaneStats: the pixel's other lanes read their bounds meanwhile.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    merge_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
+    merge_prepare_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
+  const int lanes = pp.lanes;
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
+  NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
+    const int64_t t = t0 + g / per_tile, h = t0 * per_tile + g;
+    const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
+    const TilePixel q = tile_pixel(pp, t, l);
+    if (!q.inside) continue;
+    LaneStats& ls = pp.lane_stats[h];
+    if (lanes_bound(pp.lane_stats, t * per_tile + l, lanes) < kMinTotal) {
+      ls.cnt = 0;
+      continue;
+    }
+    if (ls.floored) {
+      const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+      const Draw draw = pixel_draw(pp.seed, pp.camera, q.p, pp.width, pp.stratified);
+      const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
+      uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
+      const LaneStats again = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, pp.m,
+                                          pp.log_eps, 0.0, lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps, bins,
+                                          kTilePixels);
+      ls.px = again.px;
+      ls.cnt = again.cnt;
+    }
+    heap_sort(pp.key + h, pp.heap_idx + h, pp.heaps, ls.cnt);
+  }
+}
+
+// Entries of the sorted heap h (cnt entries) before (k, id) in (key, id) order.
+__host__ __device__ __forceinline__ int entries_before(const double* key, const int* idx, int64_t stride, int cnt, double k,
+                                              int id) {
+  int lo = 0, hi = cnt;
+  while (lo < hi) {
+    const int mid = (lo + hi) / 2;
+    if (key_less(key[mid * stride], idx[mid * stride], k, id)) lo = mid + 1;
+    else hi = mid;
+  }
+  return lo;
+}
+
+// Each entry i of the sorted heap of lane `lane` goes to its rank in the pixel's merged order, i plus the entries of
+// the other lanes' heaps before it (the points' ids are distinct, so the ranks are too): ranks below m into the
+// merged heap (entry r at merged_key[r * HM], merged_idx[r * HM]), rank m, the smallest key left, into
+// *merged_rest. Lane j's heap is h0 + j kTilePixels (entry i at key[i * H + h0 + j kTilePixels]), its size
+// stats[h0 + j kTilePixels].cnt.
+__host__ __device__ __forceinline__ void rank_lane(const double* key, const int* idx, int64_t H, const LaneStats* stats,
+                                                   int64_t h0, int lane, int lanes, int m, double* merged_key,
+                                                   int* merged_idx, int64_t HM, double* merged_rest) {
+  const int64_t h = h0 + lane * kTilePixels;
+  for (int i = 0; i < stats[h].cnt; ++i) {
+    const double k = key[i * H + h];
+    const int id = idx[i * H + h];
+    int rank = i;
+    for (int j = 0; j < lanes; ++j) {
+      const int64_t hj = h0 + j * kTilePixels;
+      if (j != lane) rank += entries_before(key + hj, idx + hj, H, stats[hj].cnt, k, id);
+    }
+    if (rank > m) break;  // the ranks grow with i
+    if (rank == m) {
+      *merged_rest = k;
+    } else {
+      merged_key[rank * HM] = k;
+      merged_idx[rank * HM] = id;
+    }
+  }
+}
+
+// rank_lane for each lane of each pixel of tiles [t0, t1), with sample_kernel's threads.
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    merge_rank_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
+  const int64_t per_tile = static_cast<int64_t>(pp.lanes) * kTilePixels, HM = pp.tiles * kTilePixels;
+  NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
+    const int64_t t = t0 + g / per_tile;
+    const int lane = static_cast<int>((g / kTilePixels) % pp.lanes), l = static_cast<int>(g % kTilePixels);
+    if (!tile_pixel(pp, t, l).inside) continue;
+    const int64_t hm = t * kTilePixels + l;
+    rank_lane(pp.key, pp.heap_idx, pp.heaps, pp.lane_stats, t * per_tile + l, lane, pp.lanes, pp.m,
+              pp.merged_key + hm, pp.merged_idx + hm, HM, pp.merged_rest + hm);
+  }
+}
+
+// Each pixel's sample from its merged heap and its lanes' stats (summed in lane order).
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    merge_finish_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
   const int m = pp.m, lanes = pp.lanes;
-  const int64_t H = pp.heaps, HM = pp.tiles * kTilePixels;
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels, HM = pp.tiles * kTilePixels;
   NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
     const int64_t t = t0 + g / kTilePixels;
     const int l = static_cast<int>(g % kTilePixels);
     const TilePixel q = tile_pixel(pp, t, l);
     if (!q.inside) continue;
-    const int64_t p = q.p, h0 = t * lanes * kTilePixels + l, hm = t * kTilePixels + l;
-    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
-    LaneStats* ls = pp.lane_stats;
-    double bound = 0.0;
-    for (int j = 0; j < lanes; ++j) bound += ls[h0 + j * kTilePixels].bound;
-    double* key = pp.merged_key + hm;
-    int* idx = pp.merged_idx + hm;
-    const Ray ray = pixel_ray(pp.K, u, v);
-    int cnt = 0, evaluated = 0;
+    const int64_t h0 = t * per_tile + l, hm = t * kTilePixels + l;
+    const LaneStats* ls = pp.lane_stats;
+    const bool empty = lanes_bound(ls, h0, lanes) < kMinTotal;
+    int entries = 0, evaluated = 0;
     double total = 0.0, rest = INFINITY;
     bool exhaustive = true;
-    if (bound >= kMinTotal) {
-      const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
-      const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
-      uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
-      int at[kMaxPixelLanes];
-      for (int j = 0; j < lanes; ++j) {
-        const int64_t h = h0 + j * kTilePixels;
-        if (ls[h].floored)
-          ls[h] = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, m, pp.log_eps, 0.0, j,
-                              lanes, pp.key + h, pp.heap_idx + h, H, bins, kTilePixels);
-        heap_sort(pp.key + h, pp.heap_idx + h, H, ls[h].cnt);
-        at[j] = 0;
-        total += ls[h].px.total;
-        evaluated += ls[h].px.evaluated;
-        exhaustive = exhaustive && ls[h].px.exhaustive;
-        rest = dmin(rest, ls[h].px.rest);
-      }
-      // k-way merge of the sorted heaps; then the smallest entry left bounds xi_(m+1) too
-      for (; cnt <= m; ++cnt) {
-        int best = -1;
-        for (int j = 0; j < lanes; ++j) {
-          if (at[j] == ls[h0 + j * kTilePixels].cnt) continue;
-          const int64_t e = at[j] * H + h0 + j * kTilePixels;
-          const int64_t eb = best < 0 ? 0 : at[best] * H + h0 + best * kTilePixels;
-          if (best < 0 || key_less(pp.key[e], pp.heap_idx[e], pp.key[eb], pp.heap_idx[eb])) best = j;
-        }
-        if (best < 0) break;
-        const int64_t e = at[best] * H + h0 + best * kTilePixels;
-        if (cnt == m) {
-          rest = dmin(rest, pp.key[e]);
-          break;
-        }
-        key[cnt * HM] = pp.key[e];
-        idx[cnt * HM] = pp.heap_idx[e];
-        ++at[best];
-      }
-    } else {
-      for (int j = 0; j < lanes; ++j) evaluated += ls[h0 + j * kTilePixels].px.evaluated;
+    for (int j = 0; j < lanes; ++j) {
+      const LaneStats& lj = ls[h0 + j * kTilePixels];
+      evaluated += lj.px.evaluated;
+      if (empty) continue;
+      entries += lj.cnt;
+      total += lj.px.total;
+      exhaustive = exhaustive && lj.px.exhaustive;
+      rest = dmin(rest, lj.px.rest);
     }
-    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion, key, idx, HM,
-                   pp.idx + p * m, pp.prob + p * m);
-    pp.total[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
-    pp.work[p] = evaluated;
+    if (entries > m) rest = dmin(rest, pp.merged_rest[hm]);
+    const int cnt = entries < m ? entries : m;
+    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+    const Ray ray = pixel_ray(pp.K, u, v);
+    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion,
+                   pp.merged_key + hm, pp.merged_idx + hm, HM, pp.idx + q.p * m, pp.prob + q.p * m);
+    pp.total[q.p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
+    pp.work[q.p] = evaluated;
   }
 }
 
@@ -652,11 +722,12 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   const int64_t heaps = tiles * lanes * kTilePixels;
   at::Tensor key_scratch = at::empty({heaps * m}, opts.dtype(at::kDouble));
   at::Tensor heap_idx = at::empty({heaps * m}, opts.dtype(at::kInt));
-  at::Tensor lane_stats, merged_key, merged_idx;
+  at::Tensor lane_stats, merged_key, merged_idx, merged_rest;
   if (lanes > 1) {
     lane_stats = bytes(heaps * static_cast<int64_t>(sizeof(LaneStats)), opts);
     merged_key = at::empty({tiles * kTilePixels * m}, opts.dtype(at::kDouble));
     merged_idx = at::empty({tiles * kTilePixels * m}, opts.dtype(at::kInt));
+    merged_rest = at::empty({tiles * kTilePixels}, opts.dtype(at::kDouble));
   }
   const double log_eps = std::log(eps), lane_log_eps = std::log(eps / lanes);
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
@@ -723,7 +794,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
                         near_counts[b].data_ptr<int>(), nullptr, key_scratch.data_ptr<double>(),
                         heap_idx.data_ptr<int>(), heaps, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr,
                         lanes > 1 ? merged_key.data_ptr<double>() : nullptr,
-                        lanes > 1 ? merged_idx.data_ptr<int>() : nullptr, indices.data_ptr<int>() + b * P * m,
+                        lanes > 1 ? merged_idx.data_ptr<int>() : nullptr,
+                        lanes > 1 ? merged_rest.data_ptr<double>() : nullptr, indices.data_ptr<int>() + b * P * m,
                         probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P};
       for (int64_t t0 = 0; t0 < tiles;) {
         int64_t t1 = t0 + 1;
@@ -734,8 +806,14 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
                   pass, t0, t1);
         NS_LAUNCH_CHECK();
         if (lanes > 1) {
-          NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream, pass,
-                    t0, t1);
+          NS_LAUNCH(merge_prepare_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads,
+                    stream, pass, t0, t1);
+          NS_LAUNCH_CHECK();
+          NS_LAUNCH(merge_rank_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads,
+                    stream, pass, t0, t1);
+          NS_LAUNCH_CHECK();
+          NS_LAUNCH(merge_finish_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
+                    pass, t0, t1);
           NS_LAUNCH_CHECK();
         }
         t0 = t1;
@@ -745,6 +823,34 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   });
   return {indices, probs, total, work};
 }
+
+#if defined(NSPLAT_CUDA_EMULATE)
+// Test entry of the emulation build: rank_lane over P pixels' L sorted heaps (key, idx [P, L, m], cnt [P, L]);
+// returns the merged heaps' m smallest entries (key [P, m] double, idx [P, m] int; unset entries NaN / -1) and each
+// pixel's (m+1)-th smallest key ([P], NaN when there are at most m entries).
+std::vector<at::Tensor> merge_lanes_emulated(const at::Tensor& key, const at::Tensor& idx, const at::Tensor& cnt,
+                                             int64_t m) {
+  const int64_t P = key.size(0), L = key.size(1), H = P * L * kTilePixels;
+  const auto dbl = key.options().dtype(at::kDouble), i32 = key.options().dtype(at::kInt);
+  at::Tensor heap_key = at::empty({key.size(2), H}, dbl), heap_idx = at::empty({key.size(2), H}, i32);
+  std::vector<LaneStats> stats(static_cast<size_t>(H));
+  const at::Tensor k = key.contiguous(), id = idx.contiguous(), c = cnt.contiguous();
+  for (int64_t h = 0; h < P * L; ++h) {
+    stats[static_cast<size_t>(h * kTilePixels)].cnt = c.data_ptr<int>()[h];
+    for (int64_t i = 0; i < key.size(2); ++i) {
+      heap_key.data_ptr<double>()[i * H + h * kTilePixels] = k.data_ptr<double>()[h * key.size(2) + i];
+      heap_idx.data_ptr<int>()[i * H + h * kTilePixels] = id.data_ptr<int>()[h * key.size(2) + i];
+    }
+  }
+  at::Tensor out_key = at::full({m, P}, NAN, dbl), out_idx = at::full({m, P}, -1, i32), rest = at::full({P}, NAN, dbl);
+  for (int64_t p = 0; p < P; ++p)
+    for (int lane = 0; lane < L; ++lane)
+      rank_lane(heap_key.data_ptr<double>(), heap_idx.data_ptr<int>(), H, stats.data(), p * L * kTilePixels, lane,
+                static_cast<int>(L), static_cast<int>(m), out_key.data_ptr<double>() + p, out_idx.data_ptr<int>() + p,
+                P, rest.data_ptr<double>() + p);
+  return {out_key.t().contiguous(), out_idx.t().contiguous(), rest};
+}
+#endif
 
 int64_t host_reads_cuda() { return host_read_count().load(); }
 
