@@ -6,7 +6,9 @@
 //   U_n(R) = sum_amp exp(-dist(box_n, R)^2 / (2 h^2)),
 // is below theta (a far subtree, searched per pixel with search_subtree when visited). Every point of the
 // tree is in exactly one item, so nothing is dropped at the tile level. Items whose bound over R is below
-// a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel.
+// a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel. On a GPU
+// a tile's list is cut by kTileSlots threads, one per slot (tile_slot_items: the subtrees at depth kSlotBits,
+// left to right), and arranged for the pixel pass by a stable sort of the items by (tile, near/far bin).
 //
 // Pixel pass (sample_lane, the CUDA sampler; the CPU's tile lanes in cpu/lanes.h visit in tile order instead):
 // every near item gets its bound U_i(x) at the pixel centre (the smaller of the isotropic box bound and the
@@ -154,8 +156,6 @@ NS_HD double node_rect_log_bound(const TreeView& T, int node, double x0, double 
   return a.log_amp - (dx * dx + dy * dy) / (2.0 * dmax(a.h2, 1e-300));
 }
 
-// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1]. Writes them to
-// `out` when it is not null; returns their number. `nodes` (if not null) gets the nodes visited.
 NS_HD int bound_bin(double lb);
 
 // log of the box bound of `it` over the rectangle [x0, x1] x [y0, y1].
@@ -165,28 +165,35 @@ NS_HD double item_rect_log_bound(const TileItem& it, double x0, double y0, doubl
   return it.log_amp - (dx * dx + dy * dy) * it.inv2h2;
 }
 
-// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1], in Morton order.
-// Items whose bound over the tile is below exp(log_far) are "far": they keep the bin of that tile bound
-// (tile_bin) and are not bounded per pixel. Writes the items to `out` when it is not null; returns their
-// number. `nodes` (if not null) gets the tree nodes visited.
-NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double y1, double log_theta,
-                     double log_far, TileItem* out, int* nodes) {
-  if (T.n == 0) return 0;
+// Whether tree reference `ref` is an item of the tile whose pixel centres span [x0, x1] x [y0, y1]: a point, a
+// group, or a subtree whose bound over the tile is below exp(log_theta).
+NS_HD bool is_tile_item(const TreeView& T, int ref, double x0, double y0, double x1, double y1, double log_theta) {
+  return ref < 0 || T.nodes[ref].last - T.nodes[ref].first + 1 <= kGroupSize ||
+         node_rect_log_bound(T, ref, x0, y0, x1, y1) < log_theta;
+}
+
+// The item of reference `ref` for that tile: "far" (keeping the bin of its bound over the tile in tile_bin) when
+// that bound is below exp(log_far).
+NS_HD TileItem tile_rect_item(const TreeView& T, int ref, double x0, double y0, double x1, double y1, double log_far) {
+  TileItem it = tile_item(T, ref);
+  const double lt = item_rect_log_bound(it, x0, y0, x1, y1);
+  if (lt < log_far && bound_bin(lt) > 0) it.tile_bin = bound_bin(lt);
+  return it;
+}
+
+// Cuts the subtree of reference `root` into the items of the tile whose pixel centres span [x0, x1] x [y0, y1], in
+// Morton order. Writes them to `out` when it is not null; returns their number. `nodes` (if not null) gets the tree
+// nodes visited.
+NS_HD int subtree_items(const TreeView& T, int root, double x0, double y0, double x1, double y1, double log_theta,
+                        double log_far, TileItem* out, int* nodes) {
   int st[kStackSize];
   int sp = 0, count = 0, visited = 0;
-  st[sp++] = T.n == 1 ? ~0 : 0;
+  st[sp++] = root;
   while (sp > 0) {
     int ref = st[--sp];
     ++visited;
-    const bool item = ref < 0 || T.nodes[ref].last - T.nodes[ref].first + 1 <= kGroupSize ||
-                      node_rect_log_bound(T, ref, x0, y0, x1, y1) < log_theta;
-    if (item) {
-      if (out) {
-        TileItem it = tile_item(T, ref);
-        const double lt = item_rect_log_bound(it, x0, y0, x1, y1);
-        if (lt < log_far && bound_bin(lt) > 0) it.tile_bin = bound_bin(lt);
-        out[count] = it;
-      }
+    if (is_tile_item(T, ref, x0, y0, x1, y1, log_theta)) {
+      if (out) out[count] = tile_rect_item(T, ref, x0, y0, x1, y1, log_far);
       ++count;
       continue;
     }
@@ -195,6 +202,37 @@ NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double 
   }
   if (nodes) *nodes = visited;
   return count;
+}
+
+// The whole tree cut into the tile's items (subtree_items from the root).
+NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double y1, double log_theta,
+                     double log_far, TileItem* out, int* nodes) {
+  if (T.n == 0) return 0;
+  return subtree_items(T, T.n == 1 ? ~0 : 0, x0, y0, x1, y1, log_theta, log_far, out, nodes);
+}
+
+// Slots of a tile's list, for threads that cut it in parallel: the tree's first kSlotBits levels split it into
+// kTileSlots slots. Slot k follows the bits of k from the root (most significant first, 0 = left): if the path
+// meets an item, the slot holds it when k is the leftmost slot under it (the rest of k's bits are 0) and nothing
+// otherwise; else the slot holds the items of the subtree it reaches at depth kSlotBits. The slots in order hold
+// tile_items' list in order.
+constexpr int kSlotBits = 5;
+constexpr int kTileSlots = 1 << kSlotBits;
+
+// The items of slot `slot` (subtree_items' conventions, without the visit count).
+NS_HD int tile_slot_items(const TreeView& T, int slot, double x0, double y0, double x1, double y1, double log_theta,
+                          double log_far, TileItem* out) {
+  if (T.n == 0) return 0;
+  int ref = T.n == 1 ? ~0 : 0;
+  for (int level = kSlotBits - 1; level >= 0; --level) {  // bits level..0 of the slot not yet followed
+    if (is_tile_item(T, ref, x0, y0, x1, y1, log_theta)) {
+      if (slot & ((1 << (level + 1)) - 1)) return 0;
+      if (out) out[0] = tile_rect_item(T, ref, x0, y0, x1, y1, log_far);
+      return 1;
+    }
+    ref = (slot >> level) & 1 ? T.nodes[ref].right : T.nodes[ref].left;
+  }
+  return subtree_items(T, ref, x0, y0, x1, y1, log_theta, log_far, out, nullptr);
 }
 
 // Layout of a tile's list for the pixel pass: near items first, then the far ones stably sorted by

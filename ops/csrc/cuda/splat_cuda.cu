@@ -1,7 +1,8 @@
 // CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
-//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists (two reads of
+//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists (one thread
+//                                   per tile slot, then a sort into the pixel pass's layout; two reads of
 //                                   sizes back to the host per call, whatever the cameras), then one
 //                                   or more threads per pixel (lanes, tile.h), a tile's pixels on consecutive
 //                                   threads, each with its heap interleaved with its neighbours' (PixelPass);
@@ -330,22 +331,76 @@ __global__ void group_metric_kernel(TreeView tv, ItemMetric* __restrict__ metric
   }
 }
 
-// Tile item lists (tile.h), one thread per tile: first the counts (items == nullptr), then, at the offsets'
-// exclusive scan, the items in tile_items' order into `raw` and arranged for the pixel pass into `items`
-// (arrange_tile_items), with each tile's near count in near_counts.
-__global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, int64_t tiles_x, int64_t tiles,
-                                  double log_theta, double log_far, int64_t* __restrict__ counts,
-                                  const int64_t* __restrict__ offsets, TileItem* __restrict__ raw,
-                                  TileItem* __restrict__ items, int* __restrict__ near_counts) {
-  NS_GRID_STRIDE(t, tiles) {
-    const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
-    const int64_t x1 = x0 + kTileSize < width ? x0 + kTileSize : width;
-    const int64_t y1 = y0 + kTileSize < height ? y0 + kTileSize : height;
-    const int n = tile_items(tv, x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5, log_theta, log_far,
-                             raw ? raw + offsets[t] : nullptr, nullptr);
-    if (counts) counts[t] = n;
-    if (raw) near_counts[t] = arrange_tile_items(raw + offsets[t], n, items + offsets[t]);
+// The tile pass's image: its size, tiles and thresholds.
+struct TileGrid {
+  int64_t width, height, tiles_x, tiles;
+  double log_theta, log_far;
+};
+
+// The rectangle spanned by the pixel centres of tile t.
+struct TileRect {
+  double x0, y0, x1, y1;
+};
+
+__device__ __forceinline__ TileRect tile_rect(const TileGrid& grid, int64_t t) {
+  const int64_t x0 = (t % grid.tiles_x) * kTileSize, y0 = (t / grid.tiles_x) * kTileSize;
+  const int64_t x1 = x0 + kTileSize < grid.width ? x0 + kTileSize : grid.width;
+  const int64_t y1 = y0 + kTileSize < grid.height ? y0 + kTileSize : grid.height;
+  return TileRect{x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5};
+}
+
+// Arrangement class of a tile item: 0 near, 1 + tile_bin far. Sorting a camera's items stably by (tile, class)
+// gives every tile's list in arrange_tile_items' layout.
+constexpr int kItemClasses = kBins + 1;
+
+// Tile item lists (tile.h), one thread per (tile, slot) (tile.h, "Slots"): first each slot's item count (raw ==
+// nullptr); then, at the counts' exclusive scan slot_off, the slots' items into `raw` (tile_items' lists, tile after
+// tile), each with its key tile kItemClasses + class into `keys` and its position into `pos`.
+__global__ void slot_items_kernel(TreeView tv, TileGrid grid, int64_t* __restrict__ counts,
+                                  const int64_t* __restrict__ slot_off, TileItem* __restrict__ raw,
+                                  uint64_t* __restrict__ keys, int* __restrict__ pos) {
+  NS_GRID_STRIDE(g, grid.tiles * kTileSlots) {
+    const int64_t t = g / kTileSlots;
+    const int slot = static_cast<int>(g % kTileSlots);
+    const TileRect r = tile_rect(grid, t);
+    if (!raw) {
+      counts[g] = tile_slot_items(tv, slot, r.x0, r.y0, r.x1, r.y1, grid.log_theta, grid.log_far, nullptr);
+      continue;
+    }
+    const int64_t o = slot_off[g];
+    const int n = tile_slot_items(tv, slot, r.x0, r.y0, r.x1, r.y1, grid.log_theta, grid.log_far, raw + o);
+    for (int i = 0; i < n; ++i) {
+      keys[o + i] = static_cast<uint64_t>(t) * kItemClasses + static_cast<uint64_t>(raw[o + i].tile_bin + 1);
+      pos[o + i] = static_cast<int>(o + i);
+    }
   }
+}
+
+// Each tile's item offset, that of its first slot (entry `tiles`: the total).
+__global__ void tile_offsets_kernel(const int64_t* __restrict__ slot_off, int64_t tiles, int64_t* __restrict__ offsets) {
+  NS_GRID_STRIDE(t, tiles + 1) offsets[t] = slot_off[t * kTileSlots];
+}
+
+// The items in arrange_tile_items' layout, from their stable sort by key: item i is raw[pos[i]]; a tile's last near
+// item writes the tile's near count (near_counts is zeroed).
+__global__ void arrange_items_kernel(const TileItem* __restrict__ raw, const uint64_t* __restrict__ keys,
+                                     const int* __restrict__ pos, int64_t n, const int64_t* __restrict__ offsets,
+                                     TileItem* __restrict__ items, int* __restrict__ near_counts) {
+  NS_GRID_STRIDE(i, n) {
+    items[i] = raw[pos[i]];
+    const uint64_t k = keys[i];
+    if (k % kItemClasses == 0 && (i + 1 == n || keys[i + 1] != k)) {
+      const int64_t t = static_cast<int64_t>(k / kItemClasses);
+      near_counts[t] = static_cast<int>(i + 1 - offsets[t]);
+    }
+  }
+}
+
+// Bits of the arrangement keys of `tiles` tiles.
+inline int item_key_bits(int64_t tiles) {
+  int bits = 1;
+  while ((int64_t(1) << bits) < tiles * kItemClasses) ++bits;
+  return bits;
 }
 
 constexpr int kTilePixels = kTileSize * kTileSize;
@@ -746,7 +801,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
                    stream);
     const at::Tensor counts_host = to_host(counts);  // synchronises (1 of 2)
     at::Tensor sizes = at::zeros({B, tiles + 2}, i64);
-    std::vector<at::Tensor> metrics(B), near_counts(B);
+    std::vector<at::Tensor> metrics(B), near_counts(B), slot_offsets(B);
+    const TileGrid grid{width, height, tiles_x, tiles, log_theta, log_far};
     for (int64_t b = 0; b < B; ++b) {
       CudaTree& tree = trees[b];
       tree_nodes<S>(tree, counts_host.data_ptr<int64_t>()[b], cam(mu, b, 2), cam(con, b, 3), cam(amp, b, 1),
@@ -758,13 +814,18 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
         NS_LAUNCH_CHECK();
         sizes[b][tiles + 1].copy_(tree.herm_off[tv.n - 1]);  // device to device
       }
-      // tile item counts and their exclusive scan (one trailing zero: the last offset is the total)
-      at::Tensor tile_counts = at::zeros({tiles + 1}, i64);
-      NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                log_theta, log_far, tile_counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
+      // the slots' item counts and their exclusive scan (one trailing zero: the last offset is the total), and the
+      // tiles' offsets into this camera's row of `sizes`
+      at::Tensor slot_counts = at::zeros({tiles * kTileSlots + 1}, i64);
+      NS_LAUNCH(slot_items_kernel, blocks_for(tiles * kTileSlots, kThreads), kThreads, stream, tv, grid,
+                slot_counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
       NS_LAUNCH_CHECK();
-      exclusive_sum(tile_counts.data_ptr<int64_t>(), sizes.data_ptr<int64_t>() + b * (tiles + 2), tiles + 1, opts,
+      slot_offsets[b] = at::empty({tiles * kTileSlots + 1}, i64);
+      exclusive_sum(slot_counts.data_ptr<int64_t>(), slot_offsets[b].data_ptr<int64_t>(), tiles * kTileSlots + 1, opts,
                     stream);
+      NS_LAUNCH(tile_offsets_kernel, blocks_for(tiles + 1, kThreads), kThreads, stream,
+                slot_offsets[b].data_ptr<int64_t>(), tiles, sizes.data_ptr<int64_t>() + b * (tiles + 2));
+      NS_LAUNCH_CHECK();
     }
     const at::Tensor sizes_host = to_host(sizes);  // synchronises (2 of 2)
     for (int64_t b = 0; b < B; ++b) {
@@ -776,12 +837,19 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       tv.metric = as<ItemMetric>(metrics[b]);
       const int64_t n_items = off_h[tiles];
       at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-      near_counts[b] = at::empty({tiles}, opts.dtype(at::kInt));
+      near_counts[b] = at::zeros({tiles}, opts.dtype(at::kInt));
       {
         at::Tensor raw = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-        NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                  log_theta, log_far, nullptr, offsets, as<TileItem>(raw), as<TileItem>(items),
-                  near_counts[b].data_ptr<int>());
+        at::Tensor keys = at::empty({2, std::max<int64_t>(n_items, 1)}, i64);
+        at::Tensor pos = at::empty({2, std::max<int64_t>(n_items, 1)}, opts.dtype(at::kInt));
+        NS_LAUNCH(slot_items_kernel, blocks_for(tiles * kTileSlots, kThreads), kThreads, stream, tv, grid, nullptr,
+                  slot_offsets[b].data_ptr<int64_t>(), as<TileItem>(raw), as<uint64_t>(keys), pos.data_ptr<int>());
+        NS_LAUNCH_CHECK();
+        sort_pairs(as<uint64_t>(keys), as<uint64_t>(keys) + keys.size(1), pos.data_ptr<int>(),
+                   pos.data_ptr<int>() + pos.size(1), n_items, item_key_bits(tiles), opts, stream);
+        NS_LAUNCH(arrange_items_kernel, blocks_for(n_items, kThreads), kThreads, stream, as<TileItem>(raw),
+                  as<uint64_t>(keys) + keys.size(1), pos.data_ptr<int>() + pos.size(1), n_items, offsets,
+                  as<TileItem>(items), near_counts[b].data_ptr<int>());
         NS_LAUNCH_CHECK();
       }
       // pixel pass in chunks of whole tiles whose bin bytes fit in kBinScratchBytes (a tile larger than that
