@@ -519,6 +519,27 @@ def test_emulated_cuda_per_camera_seeds_sample_as_one_call_per_view(emulated, mo
     monkeypatch.undo()
 
 
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_emulated_cuda_camera_groups_sample_as_one_call_per_view(emulated, monkeypatch, lanes):
+    """A call over more cameras than one launch takes (kCameraGroup = 16 in splat_cuda.cu: the tile and pixel
+    passes run per group of cameras) samples each camera as that camera alone (bitwise)."""
+    sc = make_scene(300, 5, C=3, scale=(0.01, 0.05))
+    B, W, H = 18, 9, 6
+    V, K = make_cameras(B, W, H)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    seeds = torch.arange(B) * 7 + 1
+    _emulate(monkeypatch, emulated)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", str(lanes))
+    got = sample(proj, K, W, H, samples=4, eps=0.01, seed=seeds)
+    assert int((got[0] >= 0).sum()) > 0
+    for b in (0, 15, 16, 17):
+        one = type(proj)(**{f.name: getattr(proj, f.name)[b:b + 1] for f in dataclasses.fields(proj)})
+        alone = sample(one, K[b:b + 1], W, H, samples=4, eps=0.01, seed=int(seeds[b]))
+        for a, c in zip(alone, got):
+            assert torch.equal(a, c[b:b + 1])
+    monkeypatch.undo()
+
+
 @pytest.mark.parametrize("lanes", [1, 2, 3, 8, 16])
 @pytest.mark.parametrize("stratified,inclusion", [(False, "threshold"), (True, "threshold"), (False, "pips")])
 def test_emulated_cuda_pixel_lanes_draw_the_cpu_law(emulated, monkeypatch, lanes, stratified, inclusion):

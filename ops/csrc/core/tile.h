@@ -35,7 +35,9 @@
 // (cuda/splat_cuda.cu) the lanes of a pixel are threads of one kernel, then of the merge kernels: one that re-searches
 // and sorts each lane's heap, one that writes each heap entry at its rank in the pixel's merged order (its index plus
 // the other lanes' entries before it, by binary search; rank m is xi_(m+1)'s candidate), and one per pixel that
-// sums the lanes' stats: the result of merging the sorted heaps one entry at a time.
+// sums the lanes' stats: the result of merging the sorted heaps one entry at a time. Each of these kernels runs
+// over the tiles of all the cameras of a group (up to kCameraGroup cameras) at once; the lane count depends on
+// the image size and m only, so a camera's lanes, and so its sample, are the same alone or in a call with others.
 #pragma once
 #include "sps.h"
 
