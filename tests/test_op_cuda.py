@@ -519,6 +519,27 @@ def test_emulated_cuda_per_camera_seeds_sample_as_one_call_per_view(emulated, mo
     monkeypatch.undo()
 
 
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_emulated_cuda_camera_groups_sample_as_one_call_per_view(emulated, monkeypatch, lanes):
+    """A call over more cameras than one launch takes (kCameraGroup = 16 in splat_cuda.cu: the tile and pixel
+    passes run per group of cameras) samples each camera as that camera alone (bitwise)."""
+    sc = make_scene(300, 5, C=3, scale=(0.01, 0.05))
+    B, W, H = 18, 9, 6
+    V, K = make_cameras(B, W, H)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    seeds = torch.arange(B) * 7 + 1
+    _emulate(monkeypatch, emulated)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", str(lanes))
+    got = sample(proj, K, W, H, samples=4, eps=0.01, seed=seeds)
+    assert int((got[0] >= 0).sum()) > 0
+    for b in (0, 15, 16, 17):
+        one = type(proj)(**{f.name: getattr(proj, f.name)[b:b + 1] for f in dataclasses.fields(proj)})
+        alone = sample(one, K[b:b + 1], W, H, samples=4, eps=0.01, seed=int(seeds[b]))
+        for a, c in zip(alone, got):
+            assert torch.equal(a, c[b:b + 1])
+    monkeypatch.undo()
+
+
 @pytest.mark.parametrize("lanes", [1, 2, 3, 8, 16])
 @pytest.mark.parametrize("stratified,inclusion", [(False, "threshold"), (True, "threshold"), (False, "pips")])
 def test_emulated_cuda_pixel_lanes_draw_the_cpu_law(emulated, monkeypatch, lanes, stratified, inclusion):
@@ -559,6 +580,45 @@ def test_emulated_cuda_pixel_lanes_small_samples(emulated, monkeypatch, lanes, m
     got = sample(proj, K, 32, 24, samples=m, eps=0.01, seed=3)
     monkeypatch.undo()
     assert_same_sample_law(got, ref, 0.01, proj, 3)
+
+
+def _kway_merge(keys, ids, counts, m):
+    """The lanes' sorted heaps of one pixel merged one entry at a time, the smallest (key, id) head first: the m
+    smallest entries and the (m+1)-th smallest key (None when there are at most m entries)."""
+    at, out = [0] * len(keys), []
+    while True:
+        heads = [((keys[j][at[j]], ids[j][at[j]]), j) for j in range(len(keys)) if at[j] < counts[j]]
+        if not heads:
+            return out, None
+        entry, j = min(heads)
+        if len(out) == m:
+            return out, entry[0]
+        out.append(entry)
+        at[j] += 1
+
+
+@pytest.mark.parametrize("lanes,m", [(2, 1), (2, 6), (3, 4), (5, 9), (16, 3)])
+def test_emulated_cuda_lane_merge_is_the_sequential_merge(emulated, lanes, m):
+    """The sampler's merge of the lanes' sorted heaps (each entry placed at its rank, found by binary searches in the
+    other lanes' heaps) gives exactly the sequential k-way merge's m smallest entries and (m+1)-th key, on heaps of
+    every size from empty to full, with tied keys (ordered by id) and infinite keys."""
+    rng = np.random.default_rng(lanes * 100 + m)
+    P = 60
+    values = np.array([-3.0, -1.5, -1.5, -1.5, 0.25, 2.0, np.inf])
+    keys = np.sort(rng.choice(values, (P, lanes, m)), axis=2)
+    ids = np.stack([rng.permutation(10 * lanes * m)[: lanes * m].reshape(lanes, m) for _ in range(P)])
+    counts = rng.integers(0, m + 1, (P, lanes))
+    for p, j in np.ndindex(P, lanes):
+        order = sorted(range(m), key=lambda i: (keys[p, j, i], ids[p, j, i]))
+        keys[p, j], ids[p, j] = keys[p, j, order], ids[p, j, order]
+    got_key, got_idx, got_rest = emulated.merge_lanes(torch.from_numpy(keys), torch.from_numpy(ids).int(),
+                                                      torch.from_numpy(counts).int(), m)
+    for p in range(P):
+        want, rest = _kway_merge(keys[p], ids[p], counts[p], m)
+        n = len(want)
+        assert got_key[p, :n].tolist() == [k for k, _ in want] and got_idx[p, :n].tolist() == [i for _, i in want]
+        assert bool(got_idx[p, n:].eq(-1).all())
+        assert (rest is None and bool(got_rest[p].isnan())) or float(got_rest[p]) == rest
 
 
 def test_emulated_cuda_pixel_lanes_setting_is_checked(emulated, monkeypatch):

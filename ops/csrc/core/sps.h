@@ -63,42 +63,55 @@ struct SplatsView {
 
 NS_HD bool key_less(double ka, int ia, double kb, int ib) { return ka < kb || (ka == kb && ia < ib); }
 
+// Heaps of (key, id) entries with a stride: entry j at key[j * stride], id[j * stride], so that several heaps can
+// interleave (entry j of heap h at key[j * H + h]: the CUDA sampler's threads, one heap each, access consecutive
+// addresses).
+
 // Max-heap on (key, id). Sift-down moves a hole instead of swapping (the same result: keys are distinct pairs).
-NS_HD void heap_sift_down(double* key, int* id, int n, int i) {
-  const double k = key[i];
-  const int v = id[i];
+NS_HD void heap_sift_down(double* key, int* id, int64_t stride, int n, int i) {
+  const double k = key[i * stride];
+  const int v = id[i * stride];
   while (true) {
     int big = 2 * i + 1;
     if (big >= n) break;
-    if (big + 1 < n && key_less(key[big], id[big], key[big + 1], id[big + 1])) ++big;
-    if (!key_less(k, v, key[big], id[big])) break;
-    key[i] = key[big];
-    id[i] = id[big];
+    if (big + 1 < n && key_less(key[big * stride], id[big * stride], key[(big + 1) * stride], id[(big + 1) * stride]))
+      ++big;
+    if (!key_less(k, v, key[big * stride], id[big * stride])) break;
+    key[i * stride] = key[big * stride];
+    id[i * stride] = id[big * stride];
     i = big;
   }
-  key[i] = k;
-  id[i] = v;
+  key[i * stride] = k;
+  id[i * stride] = v;
 }
 
-NS_HD void heap_push(double* key, int* id, int n, double k, int v) {
+NS_HD void heap_swap(double* key, int* id, int64_t stride, int a, int b) {
+  const double tk = key[a * stride];
+  key[a * stride] = key[b * stride];
+  key[b * stride] = tk;
+  const int ti = id[a * stride];
+  id[a * stride] = id[b * stride];
+  id[b * stride] = ti;
+}
+
+NS_HD void heap_push(double* key, int* id, int64_t stride, int n, double k, int v) {
   int i = n;
-  key[i] = k; id[i] = v;
+  key[i * stride] = k;
+  id[i * stride] = v;
   while (i > 0) {
     int parent = (i - 1) >> 1;
-    if (!key_less(key[parent], id[parent], key[i], id[i])) break;
-    double tk = key[i]; key[i] = key[parent]; key[parent] = tk;
-    int ti = id[i]; id[i] = id[parent]; id[parent] = ti;
+    if (!key_less(key[parent * stride], id[parent * stride], key[i * stride], id[i * stride])) break;
+    heap_swap(key, id, stride, i, parent);
     i = parent;
   }
 }
 
 // In-place ascending sort of (key, id) pairs.
-NS_HD void heap_sort(double* key, int* id, int n) {
-  for (int i = n / 2 - 1; i >= 0; --i) heap_sift_down(key, id, n, i);
+NS_HD void heap_sort(double* key, int* id, int64_t stride, int n) {
+  for (int i = n / 2 - 1; i >= 0; --i) heap_sift_down(key, id, stride, n, i);
   for (int end = n - 1; end > 0; --end) {
-    double tk = key[0]; key[0] = key[end]; key[end] = tk;
-    int ti = id[0]; id[0] = id[end]; id[end] = ti;
-    heap_sift_down(key, id, end, 0);
+    heap_swap(key, id, stride, 0, end);
+    heap_sift_down(key, id, stride, end, 0);
   }
 }
 
@@ -139,8 +152,9 @@ struct SamplerCounters {
 
 // The search state of one pixel: the sample heap, the threshold and the pruned mass.
 struct PixelState {
-  double* key;        // [m] max-heap of sample keys (log xi)
-  int* idx;           // [m] their original point ids
+  double* key;        // [m] max-heap of sample keys (log xi), entry j at key[j * stride]
+  int* idx;           // [m] their original point ids, entry j at idx[j * stride]
+  int64_t stride;
   int cnt, m;
   double visited;     // exact mass of the visited points
   double rest;        // log xi_(m+1) (+inf while there is none)
@@ -152,8 +166,8 @@ struct PixelState {
   int evaluated, nodes;
 };
 
-NS_HD PixelState pixel_state(double* key, int* idx, int m, double log_eps) {
-  return PixelState{key, idx, 0, m, 0.0, INFINITY, INFINITY, log_eps, 0.0, -INFINITY, 0.0, 0, 0};
+NS_HD PixelState pixel_state(double* key, int* idx, int64_t stride, int m, double log_eps) {
+  return PixelState{key, idx, stride, 0, m, 0.0, INFINITY, INFINITY, log_eps, 0.0, -INFINITY, 0.0, 0, 0};
 }
 
 // Offers sorted point s to the sample. `rest` is the log threshold xi_(m+1) (the smallest key not in the
@@ -170,7 +184,7 @@ NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw&
   if (S.cnt == S.m && un >= S.xi_rest * lam * (1.0 + 1e-12)) return;
   double k = log(un) - lam_log;
   if (S.cnt < S.m) {
-    heap_push(S.key, S.idx, S.cnt, k, pid);
+    heap_push(S.key, S.idx, S.stride, S.cnt, k, pid);
     ++S.cnt;
     return;
   }
@@ -178,7 +192,7 @@ NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw&
     double evicted = S.key[0];
     S.key[0] = k;
     S.idx[0] = pid;
-    heap_sift_down(S.key, S.idx, S.m, 0);
+    heap_sift_down(S.key, S.idx, S.stride, S.m, 0);
     k = evicted;
   }
   if (k < S.rest) {
@@ -240,24 +254,25 @@ NS_HD void search_subtree(const TreeView& T, int root, double u, double v, const
   }
 }
 
-// Turns the heap into the output sample: inclusion probabilities (kThreshold from the log threshold
-// `rest`, kPips from Lambda_hat), then slots ordered front to back by per-pixel depth (ties by id). Empty
-// slots get index -1 and probability 0. When the sample holds every point with lambda > 0 (`all_in`, or
-// no point outside the sample has a finite key), all probabilities are 1.
+// Turns the heap key/idx (entry j at [j * stride], a scratch) into the output sample out_idx/prob[0..m): inclusion
+// probabilities (kThreshold from the log threshold `rest`, kPips from Lambda_hat), then slots ordered front to back
+// by per-pixel depth (ties by id). Empty slots get index -1 and probability 0. When the sample holds every point
+// with lambda > 0 (`all_in`, or no point outside the sample has a finite key), all probabilities are 1.
 template <typename S>
 NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray& ray, int m, int cnt, double total,
-                          double rest, bool all_in, int inclusion, double* key, int* idx, S* prob) {
+                          double rest, bool all_in, int inclusion, double* key, int* idx, int64_t stride, int* out_idx,
+                          S* prob) {
   if (total < kMinTotal) cnt = 0;
   double c = INFINITY;
   if (inclusion == kPips && cnt == m && !all_in && rest < INFINITY) {
     for (int i = 0; i < cnt; ++i) {
-      int k = idx[i];
-      key[i] = -exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
+      int k = idx[i * stride];
+      key[i * stride] = -exp(log_size(P.mu + 2 * k, P.con + 3 * k, log(static_cast<double>(P.amp[k])), u, v));
     }
-    heap_sort(key, idx, cnt);  // lambda descending
+    heap_sort(key, idx, stride, cnt);  // lambda descending
     double rest_mass = total;
     for (int j = 0; j < cnt; ++j) {
-      double lam = -key[j];
+      double lam = -key[j * stride];
       double cj = (m - j) / rest_mass;
       if (cj * lam < 1.0) { c = cj; break; }
       rest_mass -= lam;
@@ -265,15 +280,16 @@ NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray&
     }
   }
   for (int i = 0; i < cnt; ++i) {
-    int k = idx[i];
+    int k = idx[i * stride];
     bool on_plane;
     S dot;
-    key[i] = static_cast<double>(splat_depth(P.nrm + 3 * k, P.off[k], P.zc[k], ray, &on_plane, &dot));
+    key[i * stride] = static_cast<double>(splat_depth(P.nrm + 3 * k, P.off[k], P.zc[k], ray, &on_plane, &dot));
   }
-  heap_sort(key, idx, cnt);
+  heap_sort(key, idx, stride, cnt);
   const bool certain = all_in || rest == INFINITY;
   for (int i = 0; i < cnt; ++i) {
-    int k = idx[i];
+    int k = idx[i * stride];
+    out_idx[i] = k;
     if (certain || (inclusion == kPips && c == INFINITY)) {
       prob[i] = S(1);
       continue;
@@ -283,7 +299,7 @@ NS_HD void finalize_pixel(const SplatsView<S>& P, double u, double v, const Ray&
     prob[i] = static_cast<S>(dmin(1.0, pi));
   }
   for (int i = cnt; i < m; ++i) {
-    idx[i] = -1;
+    out_idx[i] = -1;
     prob[i] = S(0);
   }
 }

@@ -6,7 +6,9 @@
 //   U_n(R) = sum_amp exp(-dist(box_n, R)^2 / (2 h^2)),
 // is below theta (a far subtree, searched per pixel with search_subtree when visited). Every point of the
 // tree is in exactly one item, so nothing is dropped at the tile level. Items whose bound over R is below
-// a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel.
+// a second threshold are "far": they are binned once per tile by that bound and not bounded per pixel. On a GPU
+// a tile's list is cut by kTileSlots threads, one per slot (tile_slot_items: the subtrees at depth kSlotBits,
+// left to right), and arranged for the pixel pass by a stable sort of the items by (tile, near/far bin).
 //
 // Pixel pass (sample_lane, the CUDA sampler; the CPU's tile lanes in cpu/lanes.h visit in tile order instead):
 // every near item gets its bound U_i(x) at the pixel centre (the smaller of the isotropic box bound and the
@@ -29,7 +31,13 @@
 // so P_total xi_(m+1) <= sum_j P_j xi_j < K eps / K = eps: the same guarantee. A lane stopped by its floor test
 // has pruned mass outside its budget: when the lanes' bounds (visited + P_j) sum below kMinTotal the pixel is
 // certainly below the floor and stays empty; otherwise each such lane searches again without the floor test.
-// So a pixel's result is that of lanes without floor tests, or empty when certified below the floor.
+// So a pixel's result is that of lanes without floor tests, or empty when certified below the floor. On a GPU
+// (cuda/splat_cuda.cu) the lanes of a pixel are threads of one kernel, then of the merge kernels: one that re-searches
+// and sorts each lane's heap, one that writes each heap entry at its rank in the pixel's merged order (its index plus
+// the other lanes' entries before it, by binary search; rank m is xi_(m+1)'s candidate), and one per pixel that
+// sums the lanes' stats: the result of merging the sorted heaps one entry at a time. Each of these kernels runs
+// over the tiles of all the cameras of a group (up to kCameraGroup cameras) at once; the lane count depends on
+// the image size and m only, so a camera's lanes, and so its sample, are the same alone or in a call with others.
 #pragma once
 #include "sps.h"
 
@@ -150,8 +158,6 @@ NS_HD double node_rect_log_bound(const TreeView& T, int node, double x0, double 
   return a.log_amp - (dx * dx + dy * dy) / (2.0 * dmax(a.h2, 1e-300));
 }
 
-// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1]. Writes them to
-// `out` when it is not null; returns their number. `nodes` (if not null) gets the nodes visited.
 NS_HD int bound_bin(double lb);
 
 // log of the box bound of `it` over the rectangle [x0, x1] x [y0, y1].
@@ -161,28 +167,35 @@ NS_HD double item_rect_log_bound(const TileItem& it, double x0, double y0, doubl
   return it.log_amp - (dx * dx + dy * dy) * it.inv2h2;
 }
 
-// Cuts the tree into the items of the tile whose pixel centres span [x0, x1] x [y0, y1], in Morton order.
-// Items whose bound over the tile is below exp(log_far) are "far": they keep the bin of that tile bound
-// (tile_bin) and are not bounded per pixel. Writes the items to `out` when it is not null; returns their
-// number. `nodes` (if not null) gets the tree nodes visited.
-NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double y1, double log_theta,
-                     double log_far, TileItem* out, int* nodes) {
-  if (T.n == 0) return 0;
+// Whether tree reference `ref` is an item of the tile whose pixel centres span [x0, x1] x [y0, y1]: a point, a
+// group, or a subtree whose bound over the tile is below exp(log_theta).
+NS_HD bool is_tile_item(const TreeView& T, int ref, double x0, double y0, double x1, double y1, double log_theta) {
+  return ref < 0 || T.nodes[ref].last - T.nodes[ref].first + 1 <= kGroupSize ||
+         node_rect_log_bound(T, ref, x0, y0, x1, y1) < log_theta;
+}
+
+// The item of reference `ref` for that tile: "far" (keeping the bin of its bound over the tile in tile_bin) when
+// that bound is below exp(log_far).
+NS_HD TileItem tile_rect_item(const TreeView& T, int ref, double x0, double y0, double x1, double y1, double log_far) {
+  TileItem it = tile_item(T, ref);
+  const double lt = item_rect_log_bound(it, x0, y0, x1, y1);
+  if (lt < log_far && bound_bin(lt) > 0) it.tile_bin = bound_bin(lt);
+  return it;
+}
+
+// Cuts the subtree of reference `root` into the items of the tile whose pixel centres span [x0, x1] x [y0, y1], in
+// Morton order. Writes them to `out` when it is not null; returns their number. `nodes` (if not null) gets the tree
+// nodes visited.
+NS_HD int subtree_items(const TreeView& T, int root, double x0, double y0, double x1, double y1, double log_theta,
+                        double log_far, TileItem* out, int* nodes) {
   int st[kStackSize];
   int sp = 0, count = 0, visited = 0;
-  st[sp++] = T.n == 1 ? ~0 : 0;
+  st[sp++] = root;
   while (sp > 0) {
     int ref = st[--sp];
     ++visited;
-    const bool item = ref < 0 || T.nodes[ref].last - T.nodes[ref].first + 1 <= kGroupSize ||
-                      node_rect_log_bound(T, ref, x0, y0, x1, y1) < log_theta;
-    if (item) {
-      if (out) {
-        TileItem it = tile_item(T, ref);
-        const double lt = item_rect_log_bound(it, x0, y0, x1, y1);
-        if (lt < log_far && bound_bin(lt) > 0) it.tile_bin = bound_bin(lt);
-        out[count] = it;
-      }
+    if (is_tile_item(T, ref, x0, y0, x1, y1, log_theta)) {
+      if (out) out[count] = tile_rect_item(T, ref, x0, y0, x1, y1, log_far);
       ++count;
       continue;
     }
@@ -191,6 +204,37 @@ NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double 
   }
   if (nodes) *nodes = visited;
   return count;
+}
+
+// The whole tree cut into the tile's items (subtree_items from the root).
+NS_HD int tile_items(const TreeView& T, double x0, double y0, double x1, double y1, double log_theta,
+                     double log_far, TileItem* out, int* nodes) {
+  if (T.n == 0) return 0;
+  return subtree_items(T, T.n == 1 ? ~0 : 0, x0, y0, x1, y1, log_theta, log_far, out, nodes);
+}
+
+// Slots of a tile's list, for threads that cut it in parallel: the tree's first kSlotBits levels split it into
+// kTileSlots slots. Slot k follows the bits of k from the root (most significant first, 0 = left): if the path
+// meets an item, the slot holds it when k is the leftmost slot under it (the rest of k's bits are 0) and nothing
+// otherwise; else the slot holds the items of the subtree it reaches at depth kSlotBits. The slots in order hold
+// tile_items' list in order.
+constexpr int kSlotBits = 5;
+constexpr int kTileSlots = 1 << kSlotBits;
+
+// The items of slot `slot` (subtree_items' conventions, without the visit count).
+NS_HD int tile_slot_items(const TreeView& T, int slot, double x0, double y0, double x1, double y1, double log_theta,
+                          double log_far, TileItem* out) {
+  if (T.n == 0) return 0;
+  int ref = T.n == 1 ? ~0 : 0;
+  for (int level = kSlotBits - 1; level >= 0; --level) {  // bits level..0 of the slot not yet followed
+    if (is_tile_item(T, ref, x0, y0, x1, y1, log_theta)) {
+      if (slot & ((1 << (level + 1)) - 1)) return 0;
+      if (out) out[0] = tile_rect_item(T, ref, x0, y0, x1, y1, log_far);
+      return 1;
+    }
+    ref = (slot >> level) & 1 ? T.nodes[ref].right : T.nodes[ref].left;
+  }
+  return subtree_items(T, ref, x0, y0, x1, y1, log_theta, log_far, out, nullptr);
 }
 
 // Layout of a tile's list for the pixel pass: near items first, then the far ones stably sorted by
@@ -264,7 +308,8 @@ struct LaneStats {
 // search. Near items are binned by their bound at the pixel, far items by their (larger) bound over the tile; a
 // bin's near items are visited before its far ones, each in Morton order. The near items' bins go to one byte
 // each at bin8[i * bin8_stride] (a tile's pixels interleave their bytes; each visited bin sweeps them: a per-pixel
-// int scratch would not fit on a GPU). key/idx: the lane's m-entry heap (original point ids).
+// int scratch would not fit on a GPU). key/idx: the lane's m-entry heap (original point ids), entry j at
+// [j * heap_stride] (sps.h).
 //
 // Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
 // the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
@@ -273,7 +318,7 @@ struct LaneStats {
 // local memory): the bin tops and the bins' first items are recomputed in the loop, bit for bit.
 NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
                             const Draw& draw, int m, double log_eps, double floor, int lane, int lanes, double* key,
-                            int* idx, uint8_t* bin8, int64_t bin8_stride) {
+                            int* idx, int64_t heap_stride, uint8_t* bin8, int64_t bin8_stride) {
   LaneStats out{{0.0, INFINITY, 0, 0, true}, 0.0, 0, false};
   int near[kBins], far[kBins], far_all[kBins];  // the lane's items per bin; every far item per bin
   for (int b = 0; b < kBins; ++b) near[b] = far[b] = far_all[b] = 0;
@@ -316,7 +361,7 @@ NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int
     out.bound = suffix[0];
     return out;
   }
-  PixelState S = pixel_state(key, idx, m, log_eps);
+  PixelState S = pixel_state(key, idx, heap_stride, m, log_eps);
   int stop = kGoOn;
   int far_at = n_near;  // bin b's first far item
   t = top1;

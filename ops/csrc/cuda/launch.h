@@ -80,6 +80,28 @@ inline void sort_keys(const uint64_t* in, uint64_t* out, int64_t n, const at::Te
 #endif
 }
 
+// Stable ascending sort of n (key, value) pairs by the keys' low `bits` bits (cub radix sort).
+inline void sort_pairs(const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in, int* vals_out, int64_t n, int bits,
+                       const at::TensorOptions& dev, Stream stream) {
+#if defined(NSPLAT_CUDA_EMULATE)
+  (void)dev; (void)stream; (void)bits;
+  std::vector<int64_t> order(static_cast<size_t>(n));
+  for (int64_t i = 0; i < n; ++i) order[static_cast<size_t>(i)] = i;
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return keys_in[a] < keys_in[b]; });
+  for (int64_t i = 0; i < n; ++i) {
+    keys_out[i] = keys_in[order[static_cast<size_t>(i)]];
+    vals_out[i] = vals_in[order[static_cast<size_t>(i)]];
+  }
+#else
+  size_t temp_bytes = 0;
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, keys_in, keys_out, vals_in, vals_out,
+                                                 static_cast<int>(n), 0, bits, stream));
+  at::Tensor temp = bytes(static_cast<int64_t>(temp_bytes), dev);
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp.data_ptr(), temp_bytes, keys_in, keys_out, vals_in, vals_out,
+                                                 static_cast<int>(n), 0, bits, stream));
+#endif
+}
+
 // out[i] = sum of in[0..i) over n entries.
 inline void exclusive_sum(const int64_t* in, int64_t* out, int64_t n, const at::TensorOptions& dev, Stream stream) {
 #if defined(NSPLAT_CUDA_EMULATE)

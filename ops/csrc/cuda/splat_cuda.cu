@@ -1,10 +1,17 @@
 // CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
-//   sample_cuda                     per camera: parallel tree build (Karras 2012), tile item lists (two reads of
-//                                   sizes back to the host per call, whatever the cameras), then one
-//                                   or more threads per pixel (lanes, tile.h), a tile's pixels on consecutive
-//                                   threads; with several lanes a merge kernel, one thread per pixel
+//   sample_cuda                     per camera: parallel tree build (Karras 2012); then per camera group (up to
+//                                   kCameraGroup = 16 cameras, so all of most calls' cameras: one launch
+//                                   per phase for the group, the cameras' trees and streams in a kernel
+//                                   argument, CameraGroup): tile item lists (one thread per (camera, tile,
+//                                   slot), then one sort into the pixel pass's layout; two reads of sizes back
+//                                   to the host per call, whatever the cameras), then one or more threads per
+//                                   pixel (lanes, tile.h) over the group's (camera, tile) in chunks, a tile's
+//                                   pixels on consecutive threads, each with its heap interleaved with its
+//                                   neighbours' (PixelPass); with several lanes a merge over (pixel, lane)
+//                                   threads, each lane's entries placed at their ranks among the pixel's
+//                                   lanes, then one thread per pixel
 //   composite_forward_cuda          one thread per (camera, pixel)
 //   composite_backward_pixels_cuda  pass 1, one thread per (camera, pixel)
 //   composite_backward_points_cuda  pass 2, one thread per point over its entries sorted by (point, camera)
@@ -12,12 +19,13 @@
 // backends draw identical samples and agree up to floating-point rounding (FMA contraction, libm vs CUDA
 // math). No atomics in the outputs: results are deterministic run to run.
 //
-// Memory: the per-pixel heap lives in global memory (the `indices` output plus a double key scratch of
-// pixels x samples per camera; with L lanes per pixel, L heaps of (double, int) entries, their LaneStats and one
-// merged key scratch), so `samples` is limited by memory only; all slot offsets are 64-bit. The
-// cameras' trees of a call are alive together (a few hundred bytes per point and camera); the
-// tile items take sizeof(TileItem) (120 B) each, twice while they are arranged; the near items' per-pixel bins
-// one byte per (item, tile pixel), at most kBinScratchBytes per sampling launch.
+// Memory: the per-pixel heaps live in global memory (per camera of a group, L heaps of (double, int) entries of
+// pixels x samples for L lanes per pixel; with several lanes their LaneStats and one merged heap), so `samples` is
+// limited by memory only; a group holds as many cameras as keep this scratch within kLaneScratchBytes (one at
+// least). All slot offsets are 64-bit. The cameras' trees of a call are alive together (a few hundred bytes per
+// point and camera); the tile items of a camera group take sizeof(TileItem) (120 B) each, twice while they are
+// arranged; the near items' per-pixel bins one byte per (item, tile pixel), at most kBinScratchBytes per sampling
+// launch (a launch's tiles may span the group's cameras).
 //
 // Only the CUDA runtime/cub headers and torch's ATen + c10/cuda headers are needed here (not ATen/cuda, which
 // pulls in cuBLAS/cuSPARSE headers): the Python binding lives in bindings.cpp, and this file compiles to an
@@ -202,7 +210,7 @@ struct CudaTree {
 
 // Camera b's tree is built in three phases, so that a call over B cameras reads sizes back to the host twice
 // in all (sample_cuda), not per camera: the CPU builder's steps, each a kernel (or a cub primitive) over its
-// elements.
+// elements, one camera at a time (its sizes differ from the other cameras').
 //
 // Phase 1: the box and count of the valid means (the count written to *count on the device), their Morton keys
 // and the keys' radix sort.
@@ -320,173 +328,352 @@ SplatsBase<S> splats_base(const at::Tensor& mu, const at::Tensor& con, const at:
 // ---------------------------------------------------------------------------------------------------------
 // Per-pixel kernels.
 
-// Bound metrics of the group nodes (tile.h), one thread per internal node.
-__global__ void group_metric_kernel(TreeView tv, ItemMetric* __restrict__ metric) {
-  NS_GRID_STRIDE(i, tv.n - 1) {
+// The cameras of one launch of the tile and pixel passes (at most kCameraGroup of them, cameras first ..
+// first + count - 1 of the call): their trees and (seed, camera) streams, passed by value as a kernel argument,
+// so that no per-camera table is copied to the device. Camera c of the group is camera first + c of the call.
+constexpr int kCameraGroup = 16;
+struct CameraGroup {
+  int64_t first, count;
+  TreeView tv[kCameraGroup];
+  uint64_t seed[kCameraGroup];
+  int64_t camera[kCameraGroup];
+};
+
+// Bound metrics of the group nodes (tile.h), one thread per (camera, internal node): camera c's metrics at
+// metric[c stride + i] (stride >= its internal nodes); its thread of node 0 also copies its coefficient total
+// (herm_off[n - 1]) to coef_total[c].
+__global__ void group_metric_kernel(CameraGroup cg, int64_t stride, ItemMetric* __restrict__ metric,
+                                    int64_t* __restrict__ coef_total) {
+  NS_GRID_STRIDE(g, cg.count * stride) {
+    const int64_t c = g / stride, i = g % stride;
+    const TreeView tv = cg.tv[c];
+    if (i >= tv.n - 1) continue;
+    if (i == 0) coef_total[c] = tv.herm_off[tv.n - 1];
     const InternalNode& nd = tv.nodes[i];
-    if (nd.last - nd.first + 1 <= kGroupSize) metric[i] = group_metric(tv, nd.first, nd.last);
+    if (nd.last - nd.first + 1 <= kGroupSize) metric[c * stride + i] = group_metric(tv, nd.first, nd.last);
   }
 }
 
-// Tile item lists (tile.h), one thread per tile: first the counts (items == nullptr), then, at the offsets'
-// exclusive scan, the items in tile_items' order into `raw` and arranged for the pixel pass into `items`
-// (arrange_tile_items), with each tile's near count in near_counts.
-__global__ void tile_items_kernel(TreeView tv, int64_t width, int64_t height, int64_t tiles_x, int64_t tiles,
-                                  double log_theta, double log_far, int64_t* __restrict__ counts,
-                                  const int64_t* __restrict__ offsets, TileItem* __restrict__ raw,
-                                  TileItem* __restrict__ items, int* __restrict__ near_counts) {
-  NS_GRID_STRIDE(t, tiles) {
-    const int64_t x0 = (t % tiles_x) * kTileSize, y0 = (t / tiles_x) * kTileSize;
-    const int64_t x1 = x0 + kTileSize < width ? x0 + kTileSize : width;
-    const int64_t y1 = y0 + kTileSize < height ? y0 + kTileSize : height;
-    const int n = tile_items(tv, x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5, log_theta, log_far,
-                             raw ? raw + offsets[t] : nullptr, nullptr);
-    if (counts) counts[t] = n;
-    if (raw) near_counts[t] = arrange_tile_items(raw + offsets[t], n, items + offsets[t]);
+// The tile pass's image: its size, tiles and thresholds.
+struct TileGrid {
+  int64_t width, height, tiles_x, tiles;
+  double log_theta, log_far;
+};
+
+// The rectangle spanned by the pixel centres of tile t.
+struct TileRect {
+  double x0, y0, x1, y1;
+};
+
+__device__ __forceinline__ TileRect tile_rect(const TileGrid& grid, int64_t t) {
+  const int64_t x0 = (t % grid.tiles_x) * kTileSize, y0 = (t / grid.tiles_x) * kTileSize;
+  const int64_t x1 = x0 + kTileSize < grid.width ? x0 + kTileSize : grid.width;
+  const int64_t y1 = y0 + kTileSize < grid.height ? y0 + kTileSize : grid.height;
+  return TileRect{x0 + 0.5, y0 + 0.5, x1 - 0.5, y1 - 0.5};
+}
+
+// Arrangement class of a tile item: 0 near, 1 + tile_bin far. Sorting a camera group's items stably by (camera tile,
+// class) gives every tile's list in arrange_tile_items' layout.
+constexpr int kItemClasses = kBins + 1;
+
+// Tile item lists (tile.h) of a camera group, one thread per (camera tile, slot) (tile.h, "Slots"), camera tile
+// T = c tiles + t for tile t of camera c: first each slot's item count (raw == nullptr); then, at the counts'
+// exclusive scan slot_off, the slots' items into `raw` (tile_items' lists, camera tile after camera tile), each with
+// its key T kItemClasses + class into `keys` and its position into `pos`.
+__global__ void slot_items_kernel(CameraGroup cg, TileGrid grid, int64_t* __restrict__ counts,
+                                  const int64_t* __restrict__ slot_off, TileItem* __restrict__ raw,
+                                  uint64_t* __restrict__ keys, int* __restrict__ pos) {
+  NS_GRID_STRIDE(g, cg.count * grid.tiles * kTileSlots) {
+    const int64_t T = g / kTileSlots, c = T / grid.tiles, t = T % grid.tiles;
+    const int slot = static_cast<int>(g % kTileSlots);
+    const TileRect r = tile_rect(grid, t);
+    const TreeView tv = cg.tv[c];
+    if (!raw) {
+      counts[g] = tile_slot_items(tv, slot, r.x0, r.y0, r.x1, r.y1, grid.log_theta, grid.log_far, nullptr);
+      continue;
+    }
+    const int64_t o = slot_off[g];
+    const int n = tile_slot_items(tv, slot, r.x0, r.y0, r.x1, r.y1, grid.log_theta, grid.log_far, raw + o);
+    for (int i = 0; i < n; ++i) {
+      keys[o + i] = static_cast<uint64_t>(T) * kItemClasses + static_cast<uint64_t>(raw[o + i].tile_bin + 1);
+      pos[o + i] = static_cast<int>(o + i);
+    }
   }
+}
+
+// Each (camera) tile's item offset, that of its first slot (entry `tiles`: the total).
+__global__ void tile_offsets_kernel(const int64_t* __restrict__ slot_off, int64_t tiles, int64_t* __restrict__ offsets) {
+  NS_GRID_STRIDE(t, tiles + 1) offsets[t] = slot_off[t * kTileSlots];
+}
+
+// The items in arrange_tile_items' layout, from their stable sort by key: item i is raw[pos[i]]; a tile's last near
+// item writes the tile's near count (near_counts is zeroed).
+__global__ void arrange_items_kernel(const TileItem* __restrict__ raw, const uint64_t* __restrict__ keys,
+                                     const int* __restrict__ pos, int64_t n, const int64_t* __restrict__ offsets,
+                                     TileItem* __restrict__ items, int* __restrict__ near_counts) {
+  NS_GRID_STRIDE(i, n) {
+    items[i] = raw[pos[i]];
+    const uint64_t k = keys[i];
+    if (k % kItemClasses == 0 && (i + 1 == n || keys[i + 1] != k)) {
+      const int64_t t = static_cast<int64_t>(k / kItemClasses);
+      near_counts[t] = static_cast<int>(i + 1 - offsets[t]);
+    }
+  }
+}
+
+// Bits of the arrangement keys of `tiles` (camera) tiles.
+inline int item_key_bits(int64_t tiles) {
+  int bits = 1;
+  while ((int64_t(1) << bits) < tiles * kItemClasses) ++bits;
+  return bits;
 }
 
 constexpr int kTilePixels = kTileSize * kTileSize;
 
-// One camera's pixel pass (sample_kernel, then merge_kernel with several lanes): its tree, splats, tile lists and
-// outputs. `log_eps` is the log of a lane's budget eps / lanes; `key` and `lane_idx` hold each pixel's heaps
-// (pixels x lanes x m; lane_idx and lane_stats only with several lanes).
+// The pixel pass of a camera group (sample_kernel, then the merge kernels with several lanes): its cameras' trees and
+// streams, the call's splats, intrinsics and outputs ([B, pixels, ...]), and the group's tile lists over its camera
+// tiles T = c tiles + t (items of T at items[offsets[T]..offsets[T + 1]), near_counts[T]). `log_eps` is the log of a
+// lane's budget eps / lanes. The heaps interleave (sps.h): heap h's entry j at key[j * heaps + h] and
+// heap_idx[j * heaps + h], heap h = (T lanes + lane) kTilePixels + l for lane `lane` of pixel l of camera tile T, so
+// that consecutive threads of the pixel kernels access consecutive entries. With several lanes, lane_stats[h] holds
+// each lane's LaneStats and merged_key / merged_idx the merged heaps, pixel l of camera tile T at entry
+// j * merged + T kTilePixels + l.
 template <typename S>
 struct PixelPass {
-  TreeView tv;
-  SplatsView<S> sv;
-  const double* K;
-  int64_t width, height, tiles_x;
+  CameraGroup cg;
+  SplatsBase<S> base;
+  const double* K;  // [B, 3, 3]
+  int64_t width, height, tiles_x, tiles;
   int m, lanes, inclusion;
   double log_eps;
-  uint64_t seed;
-  int64_t camera;
   bool stratified;
   const TileItem* items;
   const int64_t* offsets;
   const int* near_counts;
   uint8_t* bin8;
   double* key;
-  int* lane_idx;
+  int* heap_idx;
+  int64_t heaps;
   LaneStats* lane_stats;
-  int* idx;  // [pixels x m] outputs
+  double* merged_key;
+  int* merged_idx;
+  double* merged_rest;
+  int64_t merged;
+  int* idx;  // [B, pixels, m] outputs
   S* prob;
-  S* total;  // [pixels]
+  S* total;  // [B, pixels]
   int* work;
 };
+// Within the 4 KiB of kernel arguments of every CUDA version.
+static_assert(sizeof(PixelPass<double>) <= 4096, "PixelPass exceeds the kernel argument space");
 
-// Sampling of camera b over tiles [t0, t1), `lanes` threads per pixel (tile.h, "Lanes"): thread g takes tile
-// t0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the tile, so that the
-// 16 threads of a (tile, lane) read the same items (idle past the image's edge). Near-item bins go to `bin8`,
-// the tile's pixels' bytes interleaved: item i of tile t, pixel l at bin8[(offsets[t] - offsets[t0] + i) *
-// kTilePixels + l] (item i belongs to lane i % lanes: each byte has one writer). With one lane the pixel is
-// finished here (its heap in pp.key); with several each lane leaves its heap in pp.key / pp.lane_idx
-// [pixels x lanes x m] and its LaneStats in pp.lane_stats [pixels x lanes] for merge_kernel.
+// Camera tile T of a pixel pass: its camera c in the group, the camera's index b in the call and its tile t.
+struct CameraTile {
+  int64_t c, b, t;
+};
+
+template <typename S>
+__device__ __forceinline__ CameraTile camera_tile(const PixelPass<S>& pp, int64_t T) {
+  const int64_t c = T / pp.tiles;
+  return CameraTile{c, pp.cg.first + c, T % pp.tiles};
+}
+
+// Pixel l (< kTilePixels) of tile t: its coordinates and whether it lies inside the image.
+struct TilePixel {
+  int64_t px, py, p;
+  bool inside;
+};
+
+template <typename S>
+__device__ __forceinline__ TilePixel tile_pixel(const PixelPass<S>& pp, int64_t t, int l) {
+  TilePixel q;
+  q.px = (t % pp.tiles_x) * kTileSize + l % kTileSize;
+  q.py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
+  q.inside = q.px < pp.width && q.py < pp.height;
+  q.p = q.py * pp.width + q.px;
+  return q;
+}
+
+// Sampling of a camera group over its camera tiles [T0, T1), `lanes` threads per pixel (tile.h, "Lanes"): thread
+// g takes camera tile T0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the
+// tile, so that the 16 threads of a (tile, lane) read the same items (idle past the image's edge), and heap
+// h = T0 lanes kTilePixels + g. Near-item bins go to `bin8`, the tile's pixels' bytes interleaved: item i of camera
+// tile T, pixel l at bin8[(offsets[T] - offsets[T0] + i) * kTilePixels + l] (item i belongs to lane i % lanes: each
+// byte has one writer). With one lane the pixel is finished here; with several each lane leaves its heap and its
+// LaneStats for the merge kernels.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    sample_kernel(PixelPass<S> pp, int64_t t0, int64_t t1) {
+    sample_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
   const int m = pp.m, lanes = pp.lanes;
-  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
-  NS_GRID_STRIDE(g, (t1 - t0) * per_tile) {
-    const int64_t t = t0 + g / per_tile;
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels, P = pp.width * pp.height;
+  NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
+    const int64_t T = T0 + g / per_tile, h = T0 * per_tile + g;
+    const CameraTile ct = camera_tile(pp, T);
     const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
-    if (px >= pp.width || py >= pp.height) continue;
-    const int64_t p = py * pp.width + px;
-    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
-    const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
-    uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
-    const TileItem* items = pp.items + pp.offsets[t];
+    const TilePixel q = tile_pixel(pp, ct.t, l);
+    if (!q.inside) continue;
+    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+    const Draw draw = pixel_draw(pp.cg.seed[ct.c], pp.cg.camera[ct.c], q.p, pp.width, pp.stratified);
+    const int n = static_cast<int>(pp.offsets[T + 1] - pp.offsets[T]);
+    uint8_t* bins = pp.bin8 + (pp.offsets[T] - pp.offsets[T0]) * kTilePixels + l;
+    const TileItem* items = pp.items + pp.offsets[T];
+    const TreeView tv = pp.cg.tv[ct.c];
     if (lanes == 1) {
-      int* idx = pp.idx + p * m;
-      double* key = pp.key + p * m;
-      const LaneStats ls = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal, 0, 1,
-                                       key, idx, bins, kTilePixels);
-      const Ray ray = pixel_ray(pp.K, u, v);
-      finalize_pixel(pp.sv, u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
-                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, key, idx, pp.prob + p * m);
-      pp.total[p] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
-      pp.work[p] = ls.px.evaluated;
+      const LaneStats ls = sample_lane(tv, items, n, pp.near_counts[T], u, v, draw, m, pp.log_eps, kMinTotal, 0, 1,
+                                       pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
+      const Ray ray = pixel_ray(pp.K + ct.b * 9, u, v);
+      const int64_t o = ct.b * P + q.p;
+      finalize_pixel(pp.base.camera(ct.b), u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
+                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, pp.key + h, pp.heap_idx + h,
+                     pp.heaps, pp.idx + o * m, pp.prob + o * m);
+      pp.total[o] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
+      pp.work[o] = ls.px.evaluated;
     } else {
-      const int64_t o = p * lanes + lane;
-      pp.lane_stats[o] = sample_lane(pp.tv, items, n, pp.near_counts[t], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
-                                     lane, lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
+      pp.lane_stats[h] = sample_lane(tv, items, n, pp.near_counts[T], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
+                                     lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
     }
   }
 }
 
-// The lanes' heaps of each pixel of tiles [t0, t1) merged into its sample (tile.h, "Lanes"), one thread per
-// pixel: a pixel whose lanes' bounds sum below kMinTotal stays empty; otherwise every lane stopped by its floor
-// test searches again without it, the lanes' heaps are sorted and merged by (key, id) into the m smallest, and
-// xi_(m+1) is the smallest key left (the next heap entry or a lane's own threshold). `merged` is a pixels x m
-// double scratch.
+// The merge of the lanes' heaps into each pixel's sample (tile.h, "Lanes") over camera tiles [T0, T1), in three
+// kernels:
+// merge_prepare_kernel and merge_rank_kernel with sample_kernel's threads (one per pixel and lane), then
+// merge_finish_kernel with one thread per pixel. A pixel whose lanes' bounds sum below kMinTotal stays empty;
+// otherwise every lane stopped by its floor test searches again without it, and the lanes' sorted heaps merge by
+// (key, id) into the m smallest, xi_(m+1) being the smallest key left (the (m+1)-th smallest heap entry or a
+// lane's own threshold).
+
+// Sum of the bounds of the lanes of the pixel whose lane 0 has heap h0 (in lane order).
+__device__ __forceinline__ double lanes_bound(const LaneStats* ls, int64_t h0, int lanes) {
+  double bound = 0.0;
+  for (int j = 0; j < lanes; ++j) bound += ls[h0 + j * kTilePixels].bound;
+  return bound;
+}
+
+// Each lane of a pixel that is not certified below the floor: searches again without the floor test if its floor
+// test stopped it, then sorts its heap; each lane of a certified pixel: an empty heap (cnt = 0). A lane rewrites
+// only the px and cnt of its own LaneStats: the pixel's other lanes read their bounds meanwhile.
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
-    merge_kernel(PixelPass<S> pp, double* __restrict__ merged, int64_t t0, int64_t t1) {
+    merge_prepare_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
+  const int lanes = pp.lanes;
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
+  NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
+    const int64_t T = T0 + g / per_tile, h = T0 * per_tile + g;
+    const CameraTile ct = camera_tile(pp, T);
+    const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
+    const TilePixel q = tile_pixel(pp, ct.t, l);
+    if (!q.inside) continue;
+    LaneStats& ls = pp.lane_stats[h];
+    if (lanes_bound(pp.lane_stats, T * per_tile + l, lanes) < kMinTotal) {
+      ls.cnt = 0;
+      continue;
+    }
+    if (ls.floored) {
+      const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+      const Draw draw = pixel_draw(pp.cg.seed[ct.c], pp.cg.camera[ct.c], q.p, pp.width, pp.stratified);
+      const int n = static_cast<int>(pp.offsets[T + 1] - pp.offsets[T]);
+      uint8_t* bins = pp.bin8 + (pp.offsets[T] - pp.offsets[T0]) * kTilePixels + l;
+      const LaneStats again = sample_lane(pp.cg.tv[ct.c], pp.items + pp.offsets[T], n, pp.near_counts[T], u, v, draw,
+                                          pp.m, pp.log_eps, 0.0, lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps,
+                                          bins, kTilePixels);
+      ls.px = again.px;
+      ls.cnt = again.cnt;
+    }
+    heap_sort(pp.key + h, pp.heap_idx + h, pp.heaps, ls.cnt);
+  }
+}
+
+// Entries of the sorted heap h (cnt entries) before (k, id) in (key, id) order.
+__host__ __device__ __forceinline__ int entries_before(const double* key, const int* idx, int64_t stride, int cnt, double k,
+                                              int id) {
+  int lo = 0, hi = cnt;
+  while (lo < hi) {
+    const int mid = (lo + hi) / 2;
+    if (key_less(key[mid * stride], idx[mid * stride], k, id)) lo = mid + 1;
+    else hi = mid;
+  }
+  return lo;
+}
+
+// Each entry i of the sorted heap of lane `lane` goes to its rank in the pixel's merged order, i plus the entries of
+// the other lanes' heaps before it (the points' ids are distinct, so the ranks are too): ranks below m into the
+// merged heap (entry r at merged_key[r * HM], merged_idx[r * HM]), rank m, the smallest key left, into
+// *merged_rest. Lane j's heap is h0 + j kTilePixels (entry i at key[i * H + h0 + j kTilePixels]), its size
+// stats[h0 + j kTilePixels].cnt.
+__host__ __device__ __forceinline__ void rank_lane(const double* key, const int* idx, int64_t H, const LaneStats* stats,
+                                                   int64_t h0, int lane, int lanes, int m, double* merged_key,
+                                                   int* merged_idx, int64_t HM, double* merged_rest) {
+  const int64_t h = h0 + lane * kTilePixels;
+  for (int i = 0; i < stats[h].cnt; ++i) {
+    const double k = key[i * H + h];
+    const int id = idx[i * H + h];
+    int rank = i;
+    for (int j = 0; j < lanes; ++j) {
+      const int64_t hj = h0 + j * kTilePixels;
+      if (j != lane) rank += entries_before(key + hj, idx + hj, H, stats[hj].cnt, k, id);
+    }
+    if (rank > m) break;  // the ranks grow with i
+    if (rank == m) {
+      *merged_rest = k;
+    } else {
+      merged_key[rank * HM] = k;
+      merged_idx[rank * HM] = id;
+    }
+  }
+}
+
+// rank_lane for each lane of each pixel of camera tiles [T0, T1), with sample_kernel's threads.
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    merge_rank_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
+  const int64_t per_tile = static_cast<int64_t>(pp.lanes) * kTilePixels;
+  NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
+    const int64_t T = T0 + g / per_tile;
+    const int lane = static_cast<int>((g / kTilePixels) % pp.lanes), l = static_cast<int>(g % kTilePixels);
+    if (!tile_pixel(pp, camera_tile(pp, T).t, l).inside) continue;
+    const int64_t hm = T * kTilePixels + l;
+    rank_lane(pp.key, pp.heap_idx, pp.heaps, pp.lane_stats, T * per_tile + l, lane, pp.lanes, pp.m,
+              pp.merged_key + hm, pp.merged_idx + hm, pp.merged, pp.merged_rest + hm);
+  }
+}
+
+// Each pixel's sample from its merged heap and its lanes' stats (summed in lane order).
+template <typename S>
+__global__ void __launch_bounds__(kPixelThreads)
+    merge_finish_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
   const int m = pp.m, lanes = pp.lanes;
-  const double* lane_key = pp.key;
-  const int* lane_idx = pp.lane_idx;
-  NS_GRID_STRIDE(g, (t1 - t0) * kTilePixels) {
-    const int64_t t = t0 + g / kTilePixels;
+  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels, P = pp.width * pp.height;
+  NS_GRID_STRIDE(g, (T1 - T0) * kTilePixels) {
+    const int64_t T = T0 + g / kTilePixels;
+    const CameraTile ct = camera_tile(pp, T);
     const int l = static_cast<int>(g % kTilePixels);
-    const int64_t px = (t % pp.tiles_x) * kTileSize + l % kTileSize, py = (t / pp.tiles_x) * kTileSize + l / kTileSize;
-    if (px >= pp.width || py >= pp.height) continue;
-    const int64_t p = py * pp.width + px;
-    const double u = static_cast<double>(px) + 0.5, v = static_cast<double>(py) + 0.5;
-    LaneStats* ls = pp.lane_stats + p * lanes;
-    double bound = 0.0;
-    for (int j = 0; j < lanes; ++j) bound += ls[j].bound;
-    double* key = merged + p * m;
-    int* idx = pp.idx + p * m;
-    const Ray ray = pixel_ray(pp.K, u, v);
-    int cnt = 0, evaluated = 0;
+    const TilePixel q = tile_pixel(pp, ct.t, l);
+    if (!q.inside) continue;
+    const int64_t h0 = T * per_tile + l, hm = T * kTilePixels + l;
+    const LaneStats* ls = pp.lane_stats;
+    const bool empty = lanes_bound(ls, h0, lanes) < kMinTotal;
+    int entries = 0, evaluated = 0;
     double total = 0.0, rest = INFINITY;
     bool exhaustive = true;
-    if (bound >= kMinTotal) {
-      const Draw draw = pixel_draw(pp.seed, pp.camera, p, pp.width, pp.stratified);
-      const int n = static_cast<int>(pp.offsets[t + 1] - pp.offsets[t]);
-      uint8_t* bins = pp.bin8 + (pp.offsets[t] - pp.offsets[t0]) * kTilePixels + l;
-      int at[kMaxPixelLanes];
-      for (int j = 0; j < lanes; ++j) {
-        const int64_t o = p * lanes + j;
-        if (ls[j].floored)
-          ls[j] = sample_lane(pp.tv, pp.items + pp.offsets[t], n, pp.near_counts[t], u, v, draw, m, pp.log_eps, 0.0, j,
-                              lanes, pp.key + o * m, pp.lane_idx + o * m, bins, kTilePixels);
-        heap_sort(pp.key + o * m, pp.lane_idx + o * m, ls[j].cnt);
-        at[j] = 0;
-        total += ls[j].px.total;
-        evaluated += ls[j].px.evaluated;
-        exhaustive = exhaustive && ls[j].px.exhaustive;
-        rest = dmin(rest, ls[j].px.rest);
-      }
-      // k-way merge of the sorted heaps; then the smallest entry left bounds xi_(m+1) too
-      for (; cnt <= m; ++cnt) {
-        int best = -1;
-        for (int j = 0; j < lanes; ++j) {
-          if (at[j] == ls[j].cnt) continue;
-          const int64_t e = (p * lanes + j) * m + at[j];
-          if (best < 0 || key_less(lane_key[e], lane_idx[e], lane_key[(p * lanes + best) * m + at[best]],
-                                   lane_idx[(p * lanes + best) * m + at[best]]))
-            best = j;
-        }
-        if (best < 0) break;
-        const int64_t e = (p * lanes + best) * m + at[best];
-        if (cnt == m) {
-          rest = dmin(rest, lane_key[e]);
-          break;
-        }
-        key[cnt] = lane_key[e];
-        idx[cnt] = lane_idx[e];
-        ++at[best];
-      }
-    } else {
-      for (int j = 0; j < lanes; ++j) evaluated += ls[j].px.evaluated;
+    for (int j = 0; j < lanes; ++j) {
+      const LaneStats& lj = ls[h0 + j * kTilePixels];
+      evaluated += lj.px.evaluated;
+      if (empty) continue;
+      entries += lj.cnt;
+      total += lj.px.total;
+      exhaustive = exhaustive && lj.px.exhaustive;
+      rest = dmin(rest, lj.px.rest);
     }
-    finalize_pixel(pp.sv, u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion, key, idx,
-                   pp.prob + p * m);
-    pp.total[p] = static_cast<S>(total < kMinTotal ? 0.0 : total);
-    pp.work[p] = evaluated;
+    if (entries > m) rest = dmin(rest, pp.merged_rest[hm]);
+    const int cnt = entries < m ? entries : m;
+    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
+    const Ray ray = pixel_ray(pp.K + ct.b * 9, u, v);
+    const int64_t o = ct.b * P + q.p;
+    finalize_pixel(pp.base.camera(ct.b), u, v, ray, m, cnt, total, rest, exhaustive && evaluated == cnt, pp.inclusion,
+                   pp.merged_key + hm, pp.merged_idx + hm, pp.merged, pp.idx + o * m, pp.prob + o * m);
+    pp.total[o] = static_cast<S>(total < kMinTotal ? 0.0 : total);
+    pp.work[o] = evaluated;
   }
 }
 
@@ -630,17 +817,27 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   at::Tensor Kd = Ks.to(at::kDouble).contiguous();
   if (P == 0 || B == 0) return {indices, probs, total, work};
   const int lanes = pixel_lanes(P, m);
-  // per-pixel heaps, reused by every camera: one per lane (lanes > 1: merged into `merged`)
-  at::Tensor key_scratch = at::empty({P * lanes * m}, opts.dtype(at::kDouble));
-  at::Tensor lane_idx, lane_stats, merged;
+  const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
+  // Camera groups: at most kCameraGroup cameras each, and as many as keep their per-pixel scratch within
+  // kLaneScratchBytes (one camera at least): one heap per lane and tile pixel, interleaved (PixelPass); with several
+  // lanes their LaneStats and the merged heaps. The scratch is sized for a full group and reused by every group.
+  const int64_t camera_scratch =
+      tiles * kTilePixels *
+      (lanes * m * 12 + (lanes > 1 ? lanes * static_cast<int64_t>(sizeof(LaneStats)) + m * 12 + 8 : 0));
+  const int64_t group = std::max<int64_t>(1, std::min<int64_t>({B, kCameraGroup, kLaneScratchBytes / std::max<int64_t>(camera_scratch, 1)}));
+  const int64_t groups = (B + group - 1) / group;
+  const int64_t heaps = group * tiles * lanes * kTilePixels, merged = group * tiles * kTilePixels;
+  at::Tensor key_scratch = at::empty({heaps * m}, opts.dtype(at::kDouble));
+  at::Tensor heap_idx = at::empty({heaps * m}, opts.dtype(at::kInt));
+  at::Tensor lane_stats, merged_key, merged_idx, merged_rest;
   if (lanes > 1) {
-    lane_idx = at::empty({P * lanes * m}, opts.dtype(at::kInt));
-    lane_stats = bytes(P * lanes * static_cast<int64_t>(sizeof(LaneStats)), opts);
-    merged = at::empty({P * m}, opts.dtype(at::kDouble));
+    lane_stats = bytes(heaps * static_cast<int64_t>(sizeof(LaneStats)), opts);
+    merged_key = at::empty({merged * m}, opts.dtype(at::kDouble));
+    merged_idx = at::empty({merged * m}, opts.dtype(at::kInt));
+    merged_rest = at::empty({merged}, opts.dtype(at::kDouble));
   }
   const double log_eps = std::log(eps), lane_log_eps = std::log(eps / lanes);
   const double log_theta = tile_log_theta(log_eps, static_cast<int>(m)), log_far = tile_log_far(log_eps, static_cast<int>(m));
-  const int64_t tiles_x = (width + kTileSize - 1) / kTileSize, tiles = tiles_x * ((height + kTileSize - 1) / kTileSize);
   const int64_t* st = streams.data_ptr<int64_t>();  // (seed, camera) of each camera, on the host
   const auto i64 = opts.dtype(at::kLong);
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
@@ -648,82 +845,147 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
     const auto cam = [&](const at::Tensor& t, int64_t b, int64_t c) { return t.data_ptr<S>() + b * N * c; };
     // Every camera's tree and tile lists, with two reads of sizes back to the host for the whole call: the valid
-    // counts, then each camera's tile item offsets (tiles + 1) and coefficient total (one row of `sizes`).
+    // counts, then `sizes`: per group g (cameras g group ..), the item offsets of its camera tiles (group tiles + 1
+    // entries from g (group tiles + 1)), then each camera's coefficient total (from B tiles + groups).
     std::vector<CudaTree> trees(B);
     at::Tensor counts = at::zeros({B}, i64);
     for (int64_t b = 0; b < B; ++b)
       tree_keys<S>(trees[b], cam(mu, b, 2), cam(amp, b, 1), cam(sig2, b, 1), N, counts.data_ptr<int64_t>() + b, opts,
                    stream);
     const at::Tensor counts_host = to_host(counts);  // synchronises (1 of 2)
-    at::Tensor sizes = at::zeros({B, tiles + 2}, i64);
-    std::vector<at::Tensor> metrics(B), near_counts(B);
-    for (int64_t b = 0; b < B; ++b) {
-      CudaTree& tree = trees[b];
-      tree_nodes<S>(tree, counts_host.data_ptr<int64_t>()[b], cam(mu, b, 2), cam(con, b, 3), cam(amp, b, 1),
-                    cam(sig2, b, 1), static_cast<int>(order), tol, opts, stream);
-      TreeView tv = tree.view();
-      metrics[b] = bytes(std::max<int64_t>(tv.n - 1, 1) * static_cast<int64_t>(sizeof(ItemMetric)), opts);
-      if (tv.n > 1) {
-        NS_LAUNCH(group_metric_kernel, blocks_for(tv.n - 1, kThreads), kThreads, stream, tv, as<ItemMetric>(metrics[b]));
-        NS_LAUNCH_CHECK();
-        sizes[b][tiles + 1].copy_(tree.herm_off[tv.n - 1]);  // device to device
+    const int64_t* n_host = counts_host.data_ptr<int64_t>();
+    at::Tensor sizes = at::zeros({B * tiles + groups + B}, i64);
+    int64_t* const sizes_d = sizes.data_ptr<int64_t>();
+    std::vector<CameraGroup> cgs(groups);
+    std::vector<at::Tensor> metrics(groups), slot_offsets(groups);
+    const TileGrid grid{width, height, tiles_x, tiles, log_theta, log_far};
+    for (int64_t g = 0; g < groups; ++g) {
+      CameraGroup& cg = cgs[g];
+      cg.first = g * group;
+      cg.count = std::min(group, B - cg.first);
+      int64_t stride = 1;  // internal nodes of the group's largest tree
+      for (int64_t c = 0; c < cg.count; ++c) stride = std::max(stride, n_host[cg.first + c] - 1);
+      metrics[g] = bytes(cg.count * stride * static_cast<int64_t>(sizeof(ItemMetric)), opts);
+      for (int64_t c = 0; c < cg.count; ++c) {
+        const int64_t b = cg.first + c;
+        tree_nodes<S>(trees[b], n_host[b], cam(mu, b, 2), cam(con, b, 3), cam(amp, b, 1), cam(sig2, b, 1),
+                      static_cast<int>(order), tol, opts, stream);
+        cg.tv[c] = trees[b].view();
+        cg.tv[c].metric = as<ItemMetric>(metrics[g]) + c * stride;
+        cg.seed[c] = static_cast<uint64_t>(st[2 * b]);
+        cg.camera[c] = st[2 * b + 1];
       }
-      // tile item counts and their exclusive scan (one trailing zero: the last offset is the total)
-      at::Tensor tile_counts = at::zeros({tiles + 1}, i64);
-      NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                log_theta, log_far, tile_counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
+      NS_LAUNCH(group_metric_kernel, blocks_for(cg.count * stride, kThreads), kThreads, stream, cg, stride,
+                as<ItemMetric>(metrics[g]), sizes_d + B * tiles + groups + cg.first);
       NS_LAUNCH_CHECK();
-      exclusive_sum(tile_counts.data_ptr<int64_t>(), sizes.data_ptr<int64_t>() + b * (tiles + 2), tiles + 1, opts,
-                    stream);
+      // the slots' item counts and their exclusive scan (one trailing zero: the last offset is the total), and the
+      // camera tiles' offsets into the group's part of `sizes`
+      const int64_t slots = cg.count * tiles * kTileSlots;
+      at::Tensor slot_counts = at::zeros({slots + 1}, i64);
+      NS_LAUNCH(slot_items_kernel, blocks_for(slots, kThreads), kThreads, stream, cg, grid,
+                slot_counts.data_ptr<int64_t>(), nullptr, nullptr, nullptr, nullptr);
+      NS_LAUNCH_CHECK();
+      slot_offsets[g] = at::empty({slots + 1}, i64);
+      exclusive_sum(slot_counts.data_ptr<int64_t>(), slot_offsets[g].data_ptr<int64_t>(), slots + 1, opts, stream);
+      NS_LAUNCH(tile_offsets_kernel, blocks_for(cg.count * tiles + 1, kThreads), kThreads, stream,
+                slot_offsets[g].data_ptr<int64_t>(), cg.count * tiles, sizes_d + cg.first * tiles + g);
+      NS_LAUNCH_CHECK();
     }
     const at::Tensor sizes_host = to_host(sizes);  // synchronises (2 of 2)
-    for (int64_t b = 0; b < B; ++b) {
-      CudaTree& tree = trees[b];
-      const int64_t* off_h = sizes_host.data_ptr<int64_t>() + b * (tiles + 2);
-      int64_t* offsets = sizes.data_ptr<int64_t>() + b * (tiles + 2);
-      tree_coefficients(tree, off_h[tiles + 1], opts, stream);
-      TreeView tv = tree.view();
-      tv.metric = as<ItemMetric>(metrics[b]);
-      const int64_t n_items = off_h[tiles];
+    for (int64_t g = 0; g < groups; ++g) {
+      CameraGroup& cg = cgs[g];
+      const int64_t gt = cg.count * tiles;  // the group's camera tiles
+      const int64_t* off_h = sizes_host.data_ptr<int64_t>() + cg.first * tiles + g;
+      const int64_t* offsets = sizes_d + cg.first * tiles + g;
+      for (int64_t c = 0; c < cg.count; ++c) {
+        const int64_t b = cg.first + c;
+        tree_coefficients(trees[b], sizes_host.data_ptr<int64_t>()[B * tiles + groups + b], opts, stream);
+        cg.tv[c].herm_coef = CudaTree::ptr<double>(trees[b].herm_coef);
+      }
+      const int64_t n_items = off_h[gt];
       at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-      near_counts[b] = at::empty({tiles}, opts.dtype(at::kInt));
+      at::Tensor near_counts = at::zeros({gt}, opts.dtype(at::kInt));
       {
         at::Tensor raw = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
-        NS_LAUNCH(tile_items_kernel, blocks_for(tiles, kThreads), kThreads, stream, tv, width, height, tiles_x, tiles,
-                  log_theta, log_far, nullptr, offsets, as<TileItem>(raw), as<TileItem>(items),
-                  near_counts[b].data_ptr<int>());
+        at::Tensor keys = at::empty({2, std::max<int64_t>(n_items, 1)}, i64);
+        at::Tensor pos = at::empty({2, std::max<int64_t>(n_items, 1)}, opts.dtype(at::kInt));
+        NS_LAUNCH(slot_items_kernel, blocks_for(gt * kTileSlots, kThreads), kThreads, stream, cg, grid, nullptr,
+                  slot_offsets[g].data_ptr<int64_t>(), as<TileItem>(raw), as<uint64_t>(keys), pos.data_ptr<int>());
+        NS_LAUNCH_CHECK();
+        sort_pairs(as<uint64_t>(keys), as<uint64_t>(keys) + keys.size(1), pos.data_ptr<int>(),
+                   pos.data_ptr<int>() + pos.size(1), n_items, item_key_bits(gt), opts, stream);
+        NS_LAUNCH(arrange_items_kernel, blocks_for(n_items, kThreads), kThreads, stream, as<TileItem>(raw),
+                  as<uint64_t>(keys) + keys.size(1), pos.data_ptr<int>() + pos.size(1), n_items, offsets,
+                  as<TileItem>(items), near_counts.data_ptr<int>());
         NS_LAUNCH_CHECK();
       }
-      // pixel pass in chunks of whole tiles whose bin bytes fit in kBinScratchBytes (a tile larger than that
-      // is a chunk of its own)
+      // pixel pass in chunks of whole camera tiles (across the group's cameras) whose bin bytes fit in
+      // kBinScratchBytes (a tile larger than that is a chunk of its own)
       const int64_t chunk_items = std::max<int64_t>(kBinScratchBytes / kTilePixels, 1);
       at::Tensor bin8 = bytes(std::min(n_items, chunk_items) * kTilePixels, opts);
-      PixelPass<S> pass{tv, base.camera(b), Kd.data_ptr<double>() + b * 9, width, height, tiles_x, static_cast<int>(m),
-                        lanes, static_cast<int>(inclusion), lane_log_eps, static_cast<uint64_t>(st[2 * b]),
-                        st[2 * b + 1], stratified, as<TileItem>(items), offsets, near_counts[b].data_ptr<int>(),
-                        nullptr, key_scratch.data_ptr<double>(), lanes > 1 ? lane_idx.data_ptr<int>() : nullptr,
-                        lanes > 1 ? as<LaneStats>(lane_stats) : nullptr, indices.data_ptr<int>() + b * P * m,
-                        probs.data_ptr<S>() + b * P * m, total.data_ptr<S>() + b * P, work.data_ptr<int>() + b * P};
-      for (int64_t t0 = 0; t0 < tiles;) {
-        int64_t t1 = t0 + 1;
-        while (t1 < tiles && off_h[t1 + 1] - off_h[t0] <= chunk_items) ++t1;
-        if ((off_h[t1] - off_h[t0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[t1] - off_h[t0]) * kTilePixels, opts);
+      PixelPass<S> pass{cg, base, Kd.data_ptr<double>(), width, height, tiles_x, tiles, static_cast<int>(m), lanes,
+                        static_cast<int>(inclusion), lane_log_eps, stratified, as<TileItem>(items), offsets,
+                        near_counts.data_ptr<int>(), nullptr, key_scratch.data_ptr<double>(),
+                        heap_idx.data_ptr<int>(), heaps, lanes > 1 ? as<LaneStats>(lane_stats) : nullptr,
+                        lanes > 1 ? merged_key.data_ptr<double>() : nullptr,
+                        lanes > 1 ? merged_idx.data_ptr<int>() : nullptr,
+                        lanes > 1 ? merged_rest.data_ptr<double>() : nullptr, merged, indices.data_ptr<int>(),
+                        probs.data_ptr<S>(), total.data_ptr<S>(), work.data_ptr<int>()};
+      for (int64_t T0 = 0; T0 < gt;) {
+        int64_t T1 = T0 + 1;
+        while (T1 < gt && off_h[T1 + 1] - off_h[T0] <= chunk_items) ++T1;
+        if ((off_h[T1] - off_h[T0]) * kTilePixels > bin8.numel()) bin8 = bytes((off_h[T1] - off_h[T0]) * kTilePixels, opts);
         pass.bin8 = as<uint8_t>(bin8);
-        NS_LAUNCH(sample_kernel<S>, blocks_for((t1 - t0) * lanes * kTilePixels, kPixelThreads), kPixelThreads, stream,
-                  pass, t0, t1);
+        NS_LAUNCH(sample_kernel<S>, blocks_for((T1 - T0) * lanes * kTilePixels, kPixelThreads), kPixelThreads, stream,
+                  pass, T0, T1);
         NS_LAUNCH_CHECK();
         if (lanes > 1) {
-          NS_LAUNCH(merge_kernel<S>, blocks_for((t1 - t0) * kTilePixels, kPixelThreads), kPixelThreads, stream, pass,
-                    merged.data_ptr<double>(), t0, t1);
+          NS_LAUNCH(merge_prepare_kernel<S>, blocks_for((T1 - T0) * lanes * kTilePixels, kPixelThreads), kPixelThreads,
+                    stream, pass, T0, T1);
+          NS_LAUNCH_CHECK();
+          NS_LAUNCH(merge_rank_kernel<S>, blocks_for((T1 - T0) * lanes * kTilePixels, kPixelThreads), kPixelThreads,
+                    stream, pass, T0, T1);
+          NS_LAUNCH_CHECK();
+          NS_LAUNCH(merge_finish_kernel<S>, blocks_for((T1 - T0) * kTilePixels, kPixelThreads), kPixelThreads, stream,
+                    pass, T0, T1);
           NS_LAUNCH_CHECK();
         }
-        t0 = t1;
+        T0 = T1;
       }
-      trees[b] = CudaTree();  // its tensors go back to the caching allocator here, in stream order
+      // the group's trees go back to the caching allocator here, in stream order
+      for (int64_t c = 0; c < cg.count; ++c) trees[cg.first + c] = CudaTree();
     }
   });
   return {indices, probs, total, work};
 }
+
+#if defined(NSPLAT_CUDA_EMULATE)
+// Test entry of the emulation build: rank_lane over P pixels' L sorted heaps (key, idx [P, L, m], cnt [P, L]);
+// returns the merged heaps' m smallest entries (key [P, m] double, idx [P, m] int; unset entries NaN / -1) and each
+// pixel's (m+1)-th smallest key ([P], NaN when there are at most m entries).
+std::vector<at::Tensor> merge_lanes_emulated(const at::Tensor& key, const at::Tensor& idx, const at::Tensor& cnt,
+                                             int64_t m) {
+  const int64_t P = key.size(0), L = key.size(1), H = P * L * kTilePixels;
+  const auto dbl = key.options().dtype(at::kDouble), i32 = key.options().dtype(at::kInt);
+  at::Tensor heap_key = at::empty({key.size(2), H}, dbl), heap_idx = at::empty({key.size(2), H}, i32);
+  std::vector<LaneStats> stats(static_cast<size_t>(H));
+  const at::Tensor k = key.contiguous(), id = idx.contiguous(), c = cnt.contiguous();
+  for (int64_t h = 0; h < P * L; ++h) {
+    stats[static_cast<size_t>(h * kTilePixels)].cnt = c.data_ptr<int>()[h];
+    for (int64_t i = 0; i < key.size(2); ++i) {
+      heap_key.data_ptr<double>()[i * H + h * kTilePixels] = k.data_ptr<double>()[h * key.size(2) + i];
+      heap_idx.data_ptr<int>()[i * H + h * kTilePixels] = id.data_ptr<int>()[h * key.size(2) + i];
+    }
+  }
+  at::Tensor out_key = at::full({m, P}, NAN, dbl), out_idx = at::full({m, P}, -1, i32), rest = at::full({P}, NAN, dbl);
+  for (int64_t p = 0; p < P; ++p)
+    for (int lane = 0; lane < L; ++lane)
+      rank_lane(heap_key.data_ptr<double>(), heap_idx.data_ptr<int>(), H, stats.data(), p * L * kTilePixels, lane,
+                static_cast<int>(L), static_cast<int>(m), out_key.data_ptr<double>() + p, out_idx.data_ptr<int>() + p,
+                P, rest.data_ptr<double>() + p);
+  return {out_key.t().contiguous(), out_idx.t().contiguous(), rest};
+}
+#endif
 
 int64_t host_reads_cuda() { return host_read_count().load(); }
 
