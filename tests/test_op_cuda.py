@@ -381,12 +381,13 @@ def emulated():
     """splat_cuda.cu built by the host compiler in its emulation mode, cached like the real backends (the
     source-hash define makes it rebuild when any native source or core header changes). Its sampling launches
     hold at most 4 KiB of per-pixel bins (256 tile items) instead of 256 MB, so every scene below is sampled
-    in several launches, some of them one tile with more items than that."""
+    in several launches, some of them one tile with more items than that; and its tree builds sort the keys of at
+    most 4 cameras at once, so that calls over more cameras take several sorts."""
     from torch.utils.cpp_extension import load
 
     sources = [str(CSRC / "cuda" / "bindings.cpp"), str(CSRC / "cuda" / "emulate.cpp")]
     flags = ["-O3", f"-std={cxx_standard()}", "-DNSPLAT_CUDA_EMULATE", f"-DNSPLAT_SOURCE_HASH={source_hash()}",
-             "-DNSPLAT_BIN_SCRATCH_BYTES=4096"]
+             "-DNSPLAT_BIN_SCRATCH_BYTES=4096", "-DNSPLAT_SORT_CAMERAS=4"]
     return load(name="nsplat_cuda_emu", sources=sources, extra_cflags=flags, extra_include_paths=[str(CSRC)],
                 build_directory=str(build_dir("cuda_emu")), verbose=False)
 
@@ -527,16 +528,41 @@ def test_emulated_cuda_camera_groups_sample_as_one_call_per_view(emulated, monke
     B, W, H = 18, 9, 6
     V, K = make_cameras(B, W, H)
     proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    # cameras whose trees have no point, one point (no internal node) and two points beside full ones
+    for b, keep in ((3, 0), (6, 1), (13, 2)):
+        proj.amps[b, keep:] = 0
     seeds = torch.arange(B) * 7 + 1
     _emulate(monkeypatch, emulated)
     monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", str(lanes))
     got = sample(proj, K, W, H, samples=4, eps=0.01, seed=seeds)
     assert int((got[0] >= 0).sum()) > 0
-    for b in (0, 15, 16, 17):
+    for b in range(B):
         one = type(proj)(**{f.name: getattr(proj, f.name)[b:b + 1] for f in dataclasses.fields(proj)})
         alone = sample(one, K[b:b + 1], W, H, samples=4, eps=0.01, seed=int(seeds[b]))
         for a, c in zip(alone, got):
             assert torch.equal(a, c[b:b + 1])
+    monkeypatch.undo()
+
+
+def test_emulated_cuda_tree_builds_take_one_launch_per_step_for_all_cameras(emulated, monkeypatch):
+    """The sampler builds the trees of all cameras of a call together: a call over 4 cameras takes as many launches
+    as one over a single camera (the tree steps, tile passes and, the scene being small, one sampling launch), and 8
+    cameras take three more, those of a second key sort (the emulation sorts at most 4 cameras' keys at once)."""
+    sc = make_scene(12, 11, C=3, scale=(0.01, 0.05))
+    V, K = make_cameras(8, 8, 8)
+    proj = project(sc["means"], sc["normals"], sc["scales"], sc["opacities"], V, K, near=0.01, far=1e10, lowpass=1.0)
+    _emulate(monkeypatch, emulated)
+    monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", "1")
+
+    def launches(B: int) -> int:
+        one = type(proj)(**{f.name: getattr(proj, f.name)[:B] for f in dataclasses.fields(proj)})
+        before = emulated.launches()
+        out = sample(one, K[:B], 8, 8, samples=4, eps=0.01, seed=3)
+        assert int((out[0] >= 0).sum()) > 0
+        return emulated.launches() - before
+
+    assert launches(4) == launches(1)
+    assert launches(8) == launches(1) + 3
     monkeypatch.undo()
 
 

@@ -17,6 +17,7 @@ int64_t host_reads_cuda();  // reads of device values by the host so far (launch
 #if defined(NSPLAT_CUDA_EMULATE)
 std::vector<at::Tensor> merge_lanes_emulated(const at::Tensor& key, const at::Tensor& idx, const at::Tensor& cnt,
                                              int64_t m);
+int64_t launches_emulated();
 #endif
 std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp,
                                     const at::Tensor& sig2, const at::Tensor& nrm, const at::Tensor& off,
@@ -191,6 +192,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sample", &nsplat::sample, "Per-pixel SPS sample over the radix tree (CUDA)");
 #if defined(NSPLAT_CUDA_EMULATE)
   m.def("merge_lanes", &nsplat::merge_lanes_emulated, "Test entry: the sampler's merge of sorted lane heaps (emulation)");
+  m.def("launches", &nsplat::launches_emulated, "Test entry: kernel launches and cub primitives so far (emulation)");
 #endif
   m.def("host_reads", &nsplat::host_reads_cuda, "Reads of device values by the host so far (each a synchronisation)");
   m.def("composite_forward", &nsplat::composite_forward, "Composite a given sample (CUDA)");

@@ -38,8 +38,12 @@ struct DeviceGuard {
   explicit DeviceGuard(const c10::Device&) {}
 };
 
+// Kernel launches and cub primitives (each one or more device launches) so far, for the tests.
+inline int64_t launch_count = 0;
+
 template <typename F>
 void launch(unsigned int grid, unsigned int block, F&& body) {
+  ++launch_count;
   gridDim.x = grid;
   blockDim.x = block;
   for (unsigned int b = 0; b < grid; ++b) {

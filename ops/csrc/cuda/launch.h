@@ -65,18 +65,20 @@ inline at::Tensor bytes(int64_t n, const at::TensorOptions& dev) {
 template <typename T>
 inline T* as(at::Tensor& t) { return reinterpret_cast<T*>(t.data_ptr()); }
 
-// Ascending sort of n 64-bit keys (cub radix sort over all 64 bits).
-inline void sort_keys(const uint64_t* in, uint64_t* out, int64_t n, const at::TensorOptions& dev, Stream stream) {
+// Ascending sort of n 64-bit keys below 2^bits (cub radix sort over their low `bits` bits).
+inline void sort_keys(const uint64_t* in, uint64_t* out, int64_t n, int bits, const at::TensorOptions& dev,
+                      Stream stream) {
 #if defined(NSPLAT_CUDA_EMULATE)
-  (void)dev; (void)stream;
+  (void)dev; (void)stream; (void)bits;
+  ++emu::launch_count;
   std::copy(in, in + n, out);
   std::sort(out, out + n);
 #else
   size_t temp_bytes = 0;
-  C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(nullptr, temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
+  C10_CUDA_CHECK(cub::DeviceRadixSort::SortKeys(nullptr, temp_bytes, in, out, static_cast<int>(n), 0, bits, stream));
   at::Tensor temp = bytes(static_cast<int64_t>(temp_bytes), dev);
   C10_CUDA_CHECK(
-      cub::DeviceRadixSort::SortKeys(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), 0, 64, stream));
+      cub::DeviceRadixSort::SortKeys(temp.data_ptr(), temp_bytes, in, out, static_cast<int>(n), 0, bits, stream));
 #endif
 }
 
@@ -85,6 +87,7 @@ inline void sort_pairs(const uint64_t* keys_in, uint64_t* keys_out, const int* v
                        const at::TensorOptions& dev, Stream stream) {
 #if defined(NSPLAT_CUDA_EMULATE)
   (void)dev; (void)stream; (void)bits;
+  ++emu::launch_count;
   std::vector<int64_t> order(static_cast<size_t>(n));
   for (int64_t i = 0; i < n; ++i) order[static_cast<size_t>(i)] = i;
   std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return keys_in[a] < keys_in[b]; });
@@ -106,6 +109,7 @@ inline void sort_pairs(const uint64_t* keys_in, uint64_t* keys_out, const int* v
 inline void exclusive_sum(const int64_t* in, int64_t* out, int64_t n, const at::TensorOptions& dev, Stream stream) {
 #if defined(NSPLAT_CUDA_EMULATE)
   (void)dev; (void)stream;
+  ++emu::launch_count;
   int64_t acc = 0;
   for (int64_t i = 0; i < n; ++i) { out[i] = acc; acc += in[i]; }
 #else

@@ -1,7 +1,8 @@
 // CUDA backend: kernels calling the same core headers as the CPU backend (ops/csrc/cpu/splat_cpu.cpp).
 //
 // Same four entry points with the same semantics as the CPU module (declared and checked in bindings.cpp):
-//   sample_cuda                     per camera: parallel tree build (Karras 2012); then per camera group (up to
+//   sample_cuda                     the parallel tree build (Karras 2012) of every camera of the call at once,
+//                                   one launch per step (CudaTrees); then per camera group (up to
 //                                   kCameraGroup = 16 cameras, so all of most calls' cameras: one launch
 //                                   per phase for the group, the cameras' trees and streams in a kernel
 //                                   argument, CameraGroup): tile item lists (one thread per (camera, tile,
@@ -67,16 +68,20 @@ __device__ __forceinline__ double cpu_min(double cur, double x) { return x < cur
 __device__ __forceinline__ double cpu_max(double cur, double x) { return cur < x ? x : cur; }
 
 // ---------------------------------------------------------------------------------------------------------
-// Tree build kernels (one camera). Points with amp > 0 are "valid" (the CPU builder's filter).
+// Tree build kernels, for all cameras of a call at once (CudaTrees). Points with amp > 0 are "valid" (the CPU
+// builder's filter). The splats are [B, N, ...]: camera b's point k at b N + k.
 
-// Stage 1 of the box of valid means: per-thread partial (lox, loy, hix, hiy) and valid count over a grid
-// stride (no shared memory or barriers: the partials are few, parts x kThreads).
+// Stage 1 of the box of each camera's valid means: blocks b parts .. (b + 1) parts - 1 take camera b, each thread a
+// partial (lox, loy, hix, hiy) and valid count over a stride of the camera's points (no shared memory or barriers:
+// the partials are few, parts x kThreads per camera), at part_box / part_cnt[b parts kThreads + thread].
 template <typename S>
-__global__ void box_partial_kernel(const S* __restrict__ mu, const S* __restrict__ amp, int64_t N,
+__global__ void box_partial_kernel(const S* __restrict__ mu, const S* __restrict__ amp, int64_t N, int64_t parts,
                                    double* __restrict__ part_box, int64_t* __restrict__ part_cnt) {
+  const int64_t b = blockIdx.x / parts, threads = parts * blockDim.x;
+  const int64_t t = (blockIdx.x % parts) * blockDim.x + threadIdx.x;
   double lox = INFINITY, loy = INFINITY, hix = -INFINITY, hiy = -INFINITY;
   int64_t cnt = 0;
-  NS_GRID_STRIDE(k, N) {
+  for (int64_t k = b * N + t; k < (b + 1) * N; k += threads) {
     if (!(amp[k] > S(0))) continue;
     const double x = static_cast<double>(mu[2 * k]), y = static_cast<double>(mu[2 * k + 1]);
     lox = cpu_min(lox, x);
@@ -85,218 +90,303 @@ __global__ void box_partial_kernel(const S* __restrict__ mu, const S* __restrict
     hiy = cpu_max(hiy, y);
     ++cnt;
   }
-  const int64_t t = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  part_box[4 * t] = lox;
-  part_box[4 * t + 1] = loy;
-  part_box[4 * t + 2] = hix;
-  part_box[4 * t + 3] = hiy;
-  part_cnt[t] = cnt;
+  const int64_t o = b * threads + t;
+  part_box[4 * o] = lox;
+  part_box[4 * o + 1] = loy;
+  part_box[4 * o + 2] = hix;
+  part_box[4 * o + 3] = hiy;
+  part_cnt[o] = cnt;
 }
 
-// Stages 2 and 3: thread (c, j), c < 5, folds component c (4: the count) of the partials j, j + folds, ...
-// into fold j; folds = 1 gives the box and the count. Min/max and integer sums: the result does not depend
-// on the grouping.
-__global__ void box_fold_kernel(const double* __restrict__ part_box, const int64_t* __restrict__ part_cnt,
+// Stages 2 and 3, per camera b < B: thread (b, c, j), c < 5, folds component c (4: the count) of camera b's partials
+// j, j + folds, ... (of `parts` per camera) into its fold j; folds = 1 gives each camera's box and count. Min/max and
+// integer sums: the result does not depend on the grouping.
+__global__ void box_fold_kernel(const double* __restrict__ part_box, const int64_t* __restrict__ part_cnt, int64_t B,
                                 int64_t parts, int64_t folds, double* __restrict__ out_box,
                                 int64_t* __restrict__ out_cnt) {
-  NS_GRID_STRIDE(t, 5 * folds) {
-    const int64_t c = t / folds, j = t % folds;
+  NS_GRID_STRIDE(t, B * 5 * folds) {
+    const int64_t b = t / (5 * folds), c = (t / folds) % 5, j = t % folds;
+    const double* box = part_box + 4 * b * parts;
+    const int64_t* cnts = part_cnt + b * parts;
     if (c < 4) {
       double acc = c < 2 ? INFINITY : -INFINITY;
       for (int64_t i = j; i < parts; i += folds)
-        acc = c < 2 ? cpu_min(acc, part_box[4 * i + c]) : cpu_max(acc, part_box[4 * i + c]);
-      out_box[4 * j + c] = acc;
+        acc = c < 2 ? cpu_min(acc, box[4 * i + c]) : cpu_max(acc, box[4 * i + c]);
+      out_box[4 * (b * folds + j) + c] = acc;
     } else {
       int64_t cnt = 0;
-      for (int64_t i = j; i < parts; i += folds) cnt += part_cnt[i];
-      out_cnt[j] = cnt;
+      for (int64_t i = j; i < parts; i += folds) cnt += cnts[i];
+      out_cnt[b * folds + j] = cnt;
     }
   }
 }
 
-// Morton keys of valid points; invalid points get the all-ones key, which sorts after every valid key
-// (a valid key's low 32 bits hold an index < 2^31).
+// The sort keys of cameras [b0, b0 + cams), packed so that one radix sort over `cam_bits` + 32 + `nb` bits orders
+// them by camera, then by morton_key (the CPU builder's key: a 32-bit code above the point's index): camera
+// b0 + c's point k gets c << (32 + nb) | code << nb | k with k < 2^nb - 1, an invalid point the all-ones code and
+// index, which sort after the camera's valid keys.
 template <typename S>
-__global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ amp, const S* __restrict__ sig2, int64_t N,
-                              const double* __restrict__ box, uint64_t* __restrict__ keys) {
-  const double lox = box[0], loy = box[1], hix = box[2], hiy = box[3];
-  const double ex = hix - lox, ey = hiy - loy;
-  const double ext = ex < ey ? ey : ex;  // std::max(ex, ey), as on the CPU
-  const double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
-  NS_GRID_STRIDE(k, N) {
-    keys[k] = amp[k] > S(0)
-                  ? morton_key(static_cast<double>(mu[2 * k]), static_cast<double>(mu[2 * k + 1]),
-                               static_cast<double>(sig2[k]), lox, loy, inv_ext, k)
-                  : ~0ull;
+__global__ void morton_kernel(const S* __restrict__ mu, const S* __restrict__ amp, const S* __restrict__ sig2,
+                              int64_t N, int64_t b0, int64_t cams, int nb, const double* __restrict__ box,
+                              uint64_t* __restrict__ keys) {
+  NS_GRID_STRIDE(g, cams * N) {
+    const int64_t c = g / N, b = b0 + c, k = b * N + g % N;
+    const double* bx = box + 4 * b;
+    const double ex = bx[2] - bx[0], ey = bx[3] - bx[1];
+    const double ext = ex < ey ? ey : ex;  // std::max(ex, ey), as on the CPU
+    const double inv_ext = ext > 0 ? 1.0 / ext : 0.0;
+    const uint64_t low = amp[k] > S(0)
+                             ? (morton_key(static_cast<double>(mu[2 * k]), static_cast<double>(mu[2 * k + 1]),
+                                           static_cast<double>(sig2[k]), bx[0], bx[1], inv_ext, g % N) >> 32
+                                << nb) | static_cast<uint64_t>(g % N)
+                             : (uint64_t(1) << (32 + nb)) - 1;
+    keys[g] = static_cast<uint64_t>(c) << (32 + nb) | low;
   }
 }
 
-// Gathers the sorted points' double copies (the CPU builder's second loop).
-template <typename S>
-__global__ void gather_kernel(const uint64_t* __restrict__ keys, int64_t n, const S* __restrict__ mu,
-                              const S* __restrict__ con, const S* __restrict__ amp, const S* __restrict__ sig2,
-                              int* __restrict__ id, double* __restrict__ tmu, double* __restrict__ tcon,
-                              double* __restrict__ tamp, double* __restrict__ tlogA, double* __restrict__ tsig2) {
-  NS_GRID_STRIDE(s, n) {
-    const int64_t k = static_cast<int64_t>(keys[s] & 0xFFFFFFFFull);
-    id[s] = static_cast<int>(k);
-    tmu[2 * s] = static_cast<double>(mu[2 * k]);
-    tmu[2 * s + 1] = static_cast<double>(mu[2 * k + 1]);
-    for (int c = 0; c < 3; ++c) tcon[3 * s + c] = static_cast<double>(con[3 * k + c]);
-    tamp[s] = static_cast<double>(amp[k]);
-    tlogA[s] = log(tamp[s]);
-    tsig2[s] = static_cast<double>(sig2[k]);
+// The sorted packed keys of cameras [b0, b0 + cams) back in morton_key's form (~0 for invalid points): each camera
+// has N of them, so its sorted keys land at b N.
+__global__ void unpack_keys_kernel(const uint64_t* __restrict__ packed, int64_t N, int64_t b0, int64_t cams, int nb,
+                                   uint64_t* __restrict__ keys) {
+  NS_GRID_STRIDE(g, cams * N) {
+    const uint64_t index_mask = (uint64_t(1) << nb) - 1, p = packed[g];
+    const uint64_t k = p & index_mask, code = (p >> nb) & 0xFFFFFFFFull;
+    keys[b0 * N + g] = k == index_mask ? ~0ull : code << 32 | k;
   }
 }
 
-__global__ void internal_nodes_kernel(const uint64_t* __restrict__ keys, int64_t n, InternalNode* nodes,
-                                      int* parent_int, int* parent_leaf) {
-  NS_GRID_STRIDE(i, n - 1) build_internal_node(keys, n, i, nodes, parent_int, parent_leaf);
+// Kernels of phases 2 and 3 run one thread per (camera b, element) over blocks of `stride` elements; camera b's
+// valid count n = count[b] (on the device) says which of its block are live.
+
+// Camera b's sorted points' double copies (the CPU builder's second loop), leaf s at b stride + s.
+template <typename S>
+__global__ void gather_kernel(const uint64_t* __restrict__ keys, const int64_t* __restrict__ count, int64_t B,
+                              int64_t N, int64_t stride, const S* __restrict__ mu, const S* __restrict__ con,
+                              const S* __restrict__ amp, const S* __restrict__ sig2, int* __restrict__ id,
+                              double* __restrict__ tmu, double* __restrict__ tcon, double* __restrict__ tamp,
+                              double* __restrict__ tlogA, double* __restrict__ tsig2) {
+  NS_GRID_STRIDE(g, B * stride) {
+    const int64_t b = g / stride, s = g % stride;
+    if (s >= count[b]) continue;
+    const int64_t local = static_cast<int64_t>(keys[b * N + s] & 0xFFFFFFFFull), k = b * N + local;
+    id[g] = static_cast<int>(local);
+    tmu[2 * g] = static_cast<double>(mu[2 * k]);
+    tmu[2 * g + 1] = static_cast<double>(mu[2 * k + 1]);
+    for (int c = 0; c < 3; ++c) tcon[3 * g + c] = static_cast<double>(con[3 * k + c]);
+    tamp[g] = static_cast<double>(amp[k]);
+    tlogA[g] = log(tamp[g]);
+    tsig2[g] = static_cast<double>(sig2[k]);
+  }
+}
+
+// Internal node i of camera b (blocks of ni = stride - 1 nodes).
+__global__ void internal_nodes_kernel(const uint64_t* __restrict__ keys, const int64_t* __restrict__ count, int64_t B,
+                                      int64_t N, int64_t stride, InternalNode* nodes, int* parent_int,
+                                      int* parent_leaf) {
+  const int64_t ni = stride - 1;
+  NS_GRID_STRIDE(g, B * ni) {
+    const int64_t b = g / ni, i = g % ni, n = count[b];
+    if (i < n - 1) build_internal_node(keys + b * N, n, i, nodes + b * ni, parent_int + b * ni, parent_leaf + b * stride);
+  }
 }
 
 // Bottom-up aggregates: one thread per leaf; the second arrival at a node computes it (tree_build.h).
 // `agg` is read and written by different threads: it must not be read through the read-only cache.
-__global__ void propagate_kernel(int64_t n, const InternalNode* nodes, const int* parent_int,
-                                 const int* parent_leaf, const double* mu, const double* amp, const double* sig2,
-                                 NodeAgg* agg, int* flags) {
-  NS_GRID_STRIDE(s, n) propagate_up(s, nodes, parent_int, parent_leaf, mu, amp, sig2, agg, flags);
-}
-
-// Expansion order per node; also writes p^2 into sq[i] for the offsets' exclusive scan.
-__global__ void choose_expansion_kernel(int64_t ni, const InternalNode* __restrict__ nodes,
-                                        const NodeAgg* __restrict__ agg, double tol, int pmax, int* __restrict__ p,
-                                        double* __restrict__ err, int64_t* __restrict__ sq) {
-  NS_GRID_STRIDE(i, ni) {
-    choose_expansion(i, nodes, agg, tol, pmax, &p[i], &err[i]);
-    sq[i] = static_cast<int64_t>(p[i]) * p[i];
+__global__ void propagate_kernel(const int64_t* __restrict__ count, int64_t B, int64_t stride,
+                                 const InternalNode* nodes, const int* parent_int, const int* parent_leaf,
+                                 const double* mu, const double* amp, const double* sig2, NodeAgg* agg, int* flags) {
+  const int64_t ni = stride - 1;
+  NS_GRID_STRIDE(g, B * stride) {
+    const int64_t b = g / stride, s = g % stride, n = count[b];
+    if (n < 2 || s >= n) continue;
+    propagate_up(s, nodes + b * ni, parent_int + b * ni, parent_leaf + b * stride, mu + 2 * b * stride,
+                 amp + b * stride, sig2 + b * stride, agg + b * ni, flags + b * ni);
   }
 }
 
-__global__ void coefficients_kernel(int64_t ni, const InternalNode* __restrict__ nodes,
-                                    const NodeAgg* __restrict__ agg, const int* __restrict__ p,
-                                    const int64_t* __restrict__ off, const double* __restrict__ mu,
-                                    const double* __restrict__ amp, double* __restrict__ coef) {
-  NS_GRID_STRIDE(i, ni) expansion_coefficients(i, nodes, agg, p, off, mu, amp, coef);
+// Expansion order per node; also writes p^2 into sq[g] (zero for dead nodes) for the offsets' exclusive scan.
+__global__ void choose_expansion_kernel(const int64_t* __restrict__ count, int64_t B, int64_t stride,
+                                        const InternalNode* __restrict__ nodes, const NodeAgg* __restrict__ agg,
+                                        double tol, int pmax, int* __restrict__ p, double* __restrict__ err,
+                                        int64_t* __restrict__ sq) {
+  const int64_t ni = stride - 1;
+  NS_GRID_STRIDE(g, B * ni) {
+    const int64_t b = g / ni, i = g % ni;
+    if (i >= count[b] - 1) continue;
+    choose_expansion(i, nodes + b * ni, agg + b * ni, tol, pmax, p + g, err + g);
+    sq[g] = static_cast<int64_t>(p[g]) * p[g];
+  }
 }
 
-// A camera's tree in device memory (tensors from PyTorch's caching allocator).
-struct CudaTree {
-  int64_t n = 0;
-  at::Tensor keys, nodes, agg, herm_p, herm_off, herm_err, herm_coef, mu, con, logA, amp, sig2, id;
+// herm_off holds the offsets of all cameras' nodes into the one coefficient array `coef`.
+__global__ void coefficients_kernel(const int64_t* __restrict__ count, int64_t B, int64_t stride,
+                                    const InternalNode* __restrict__ nodes, const NodeAgg* __restrict__ agg,
+                                    const int* __restrict__ p, const int64_t* __restrict__ off,
+                                    const double* __restrict__ mu, const double* __restrict__ amp,
+                                    double* __restrict__ coef) {
+  const int64_t ni = stride - 1;
+  NS_GRID_STRIDE(g, B * ni) {
+    const int64_t b = g / ni, i = g % ni;
+    if (i >= count[b] - 1) continue;
+    expansion_coefficients(i, nodes + b * ni, agg + b * ni, p + b * ni, off + b * ni, mu + 2 * b * stride,
+                           amp + b * stride, coef);
+  }
+}
+
+// Cameras of one key sort: at most NSPLAT_SORT_CAMERAS (a build may lower it: the host-emulation tests use 4, so
+// that their calls take several sorts), as many as keep the packed keys within 64 bits and the sort within cub's
+// int item count.
+#ifndef NSPLAT_SORT_CAMERAS
+#define NSPLAT_SORT_CAMERAS (int64_t(1) << 20)
+#endif
+
+// Bits of the values 0 .. v.
+inline int bit_length(int64_t v) {
+  int bits = 0;
+  while (bits < 63 && (int64_t(1) << bits) <= v) ++bits;
+  return bits;
+}
+
+// The trees of a call's B cameras, built together in three phases, so that a call reads sizes back to the host twice
+// in all (sample_cuda) and each step of the CPU builder is one kernel (or cub primitive) for every camera, not one
+// per camera. Camera b's tree is block b of each array: its sorted keys at b N, its leaves at b stride, its internal
+// nodes at b (stride - 1), stride being the call's largest valid count. The coefficient offsets herm_off are one
+// exclusive scan over all the cameras' nodes, so they index the call's one coefficient array herm_coef.
+struct CudaTrees {
+  int64_t B = 0, N = 0, stride = 1;
+  std::vector<int64_t> n;  // each camera's valid count, on the host (phase 2 on)
+  at::Tensor keys, count, nodes, agg, herm_p, herm_off, herm_err, herm_coef, mu, con, logA, amp, sig2, id;
+
+  int64_t inner() const { return stride - 1; }
 
   template <typename T>
-  static const T* ptr(const at::Tensor& t) {
-    return t.defined() && t.numel() ? reinterpret_cast<const T*>(t.data_ptr()) : nullptr;
+  static T* ptr(const at::Tensor& t, int64_t at) {
+    return t.defined() && t.numel() ? reinterpret_cast<T*>(t.data_ptr()) + at : nullptr;
   }
 
-  TreeView view() const {
-    TreeView t;
-    t.n = n;
-    t.nodes = ptr<InternalNode>(nodes);
-    t.agg = ptr<NodeAgg>(agg);
-    t.herm_p = ptr<int>(herm_p);
-    t.herm_off = ptr<int64_t>(herm_off);
-    t.herm_err = ptr<double>(herm_err);
-    t.herm_coef = ptr<double>(herm_coef);
-    t.mu = ptr<double>(mu);
-    t.con = ptr<double>(con);
-    t.logA = ptr<double>(logA);
-    t.sig2 = ptr<double>(sig2);
-    t.id = ptr<int>(id);
+  // Camera b's tree (no bound metrics).
+  TreeView view(int64_t b) const {
+    TreeView t{};
+    t.n = n[b];
+    if (t.n > 0) {
+      t.mu = ptr<const double>(mu, 2 * b * stride);
+      t.con = ptr<const double>(con, 3 * b * stride);
+      t.logA = ptr<const double>(logA, b * stride);
+      t.sig2 = ptr<const double>(sig2, b * stride);
+      t.id = ptr<const int>(id, b * stride);
+    }
+    if (t.n > 1) {
+      t.nodes = ptr<const InternalNode>(nodes, b * inner());
+      t.agg = ptr<const NodeAgg>(agg, b * inner());
+      t.herm_p = ptr<const int>(herm_p, b * inner());
+      t.herm_off = ptr<const int64_t>(herm_off, b * inner());
+      t.herm_err = ptr<const double>(herm_err, b * inner());
+      t.herm_coef = ptr<const double>(herm_coef, 0);
+    }
     t.metric = nullptr;
     return t;
   }
 };
 
-// Camera b's tree is built in three phases, so that a call over B cameras reads sizes back to the host twice
-// in all (sample_cuda), not per camera: the CPU builder's steps, each a kernel (or a cub primitive) over its
-// elements, one camera at a time (its sizes differ from the other cameras').
-//
-// Phase 1: the box and count of the valid means (the count written to *count on the device), their Morton keys
-// and the keys' radix sort.
+// Phase 1: each camera's box and count of valid means (the counts into T.count, on the device), the Morton keys and
+// their radix sort, NSPLAT_SORT_CAMERAS cameras a sort.
 template <typename S>
-void tree_keys(CudaTree& T, const S* mu, const S* amp, const S* sig2, int64_t N, int64_t* count,
+void tree_keys(CudaTrees& T, const S* mu, const S* amp, const S* sig2, int64_t B, int64_t N,
                const at::TensorOptions& dev, Stream stream) {
-  if (N == 0) return;
   const auto dbl = dev.dtype(at::kDouble);
   const auto i64 = dev.dtype(at::kLong);
+  T.B = B;
+  T.N = N;
+  T.count = at::zeros({B}, i64);
+  if (N == 0) return;
   const int64_t parts = std::min<int64_t>(kReduceBlocks, blocks_for(N, kThreads));
-  at::Tensor part_box = at::empty({parts * kThreads, 4}, dbl), part_cnt = at::empty({parts * kThreads}, i64);
-  at::Tensor box = at::empty({4}, dbl);
-  NS_LAUNCH(box_partial_kernel<S>, static_cast<unsigned int>(parts), kThreads, stream, mu, amp, N,
+  at::Tensor part_box = at::empty({B * parts * kThreads, 4}, dbl), part_cnt = at::empty({B * parts * kThreads}, i64);
+  NS_LAUNCH(box_partial_kernel<S>, static_cast<unsigned int>(B * parts), kThreads, stream, mu, amp, N, parts,
             part_box.data_ptr<double>(), part_cnt.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-  at::Tensor mid_box = at::empty({kThreads, 4}, dbl), mid_cnt = at::empty({kThreads}, i64);
-  NS_LAUNCH(box_fold_kernel, blocks_for(5 * kThreads, kThreads), kThreads, stream, part_box.data_ptr<double>(),
-            part_cnt.data_ptr<int64_t>(), parts * kThreads, kThreads, mid_box.data_ptr<double>(),
+  at::Tensor mid_box = at::empty({B * kThreads, 4}, dbl), mid_cnt = at::empty({B * kThreads}, i64);
+  NS_LAUNCH(box_fold_kernel, blocks_for(B * 5 * kThreads, kThreads), kThreads, stream, part_box.data_ptr<double>(),
+            part_cnt.data_ptr<int64_t>(), B, parts * kThreads, kThreads, mid_box.data_ptr<double>(),
             mid_cnt.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-  NS_LAUNCH(box_fold_kernel, 1, 32, stream, mid_box.data_ptr<double>(), mid_cnt.data_ptr<int64_t>(), kThreads, 1,
-            box.data_ptr<double>(), count);
+  at::Tensor box = at::empty({B, 4}, dbl);
+  NS_LAUNCH(box_fold_kernel, blocks_for(B * 5, kThreads), kThreads, stream, mid_box.data_ptr<double>(),
+            mid_cnt.data_ptr<int64_t>(), B, kThreads, 1, box.data_ptr<double>(), T.count.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-  // keys and their radix sort (all 64 bits; invalid points sort last)
-  at::Tensor raw = at::empty({N}, i64);
-  T.keys = at::empty({N}, i64);
-  NS_LAUNCH(morton_kernel<S>, blocks_for(N, kThreads), kThreads, stream, mu, amp, sig2, N, box.data_ptr<double>(),
-            as<uint64_t>(raw));
-  NS_LAUNCH_CHECK();
-  sort_keys(as<uint64_t>(raw), as<uint64_t>(T.keys), N, dev, stream);
+  // packed keys (morton_kernel) need 32 + nb bits plus the camera's bits
+  const int nb = bit_length(N);
+  const int64_t per_sort = std::max<int64_t>(
+      1, std::min<int64_t>({B, NSPLAT_SORT_CAMERAS, int64_t(1) << (32 - nb), int64_t(INT32_MAX) / N}));
+  at::Tensor raw = at::empty({2, per_sort * N}, i64);
+  T.keys = at::empty({B * N}, i64);
+  for (int64_t b0 = 0; b0 < B; b0 += per_sort) {
+    const int64_t cams = std::min(per_sort, B - b0);
+    NS_LAUNCH(morton_kernel<S>, blocks_for(cams * N, kThreads), kThreads, stream, mu, amp, sig2, N, b0, cams, nb,
+              box.data_ptr<double>(), as<uint64_t>(raw));
+    NS_LAUNCH_CHECK();
+    sort_keys(as<uint64_t>(raw), as<uint64_t>(raw) + raw.size(1), cams * N, bit_length(cams - 1) + 32 + nb, dev,
+              stream);
+    NS_LAUNCH(unpack_keys_kernel, blocks_for(cams * N, kThreads), kThreads, stream, as<uint64_t>(raw) + raw.size(1), N,
+              b0, cams, nb, as<uint64_t>(T.keys));
+    NS_LAUNCH_CHECK();
+  }
 }
 
-// Phase 2, with the valid count n known on the host: sorted double copies, internal nodes, bottom-up
-// aggregates, expansion orders and the coefficient offsets (their total stays on the device, at
-// T.herm_off[n - 1]).
+// Phase 2, with the valid counts known on the host: sorted double copies, internal nodes, bottom-up aggregates,
+// expansion orders and the coefficient offsets (their total stays on the device, at T.herm_off[B (stride - 1)]).
 template <typename S>
-void tree_nodes(CudaTree& T, int64_t n, const S* mu, const S* con, const S* amp, const S* sig2, int order, double tol,
-                const at::TensorOptions& dev, Stream stream) {
-  T.n = n;
-  if (n == 0) return;
+void tree_nodes(CudaTrees& T, std::vector<int64_t> n, const S* mu, const S* con, const S* amp, const S* sig2,
+                int order, double tol, const at::TensorOptions& dev, Stream stream) {
+  T.n = std::move(n);
+  T.stride = std::max<int64_t>(1, *std::max_element(T.n.begin(), T.n.end()));
+  if (T.N == 0) return;
+  const int64_t B = T.B, L = B * T.stride, I = B * T.inner();
   const auto dbl = dev.dtype(at::kDouble);
   const auto i64 = dev.dtype(at::kLong);
   const auto i32 = dev.dtype(at::kInt);
   const uint64_t* keys = as<uint64_t>(T.keys);
-  T.id = at::empty({n}, i32);
-  T.mu = at::empty({n, 2}, dbl);
-  T.con = at::empty({n, 3}, dbl);
-  T.amp = at::empty({n}, dbl);
-  T.logA = at::empty({n}, dbl);
-  T.sig2 = at::empty({n}, dbl);
-  NS_LAUNCH(gather_kernel<S>, blocks_for(n, kThreads), kThreads, stream, keys, n, mu, con, amp, sig2,
-            T.id.data_ptr<int>(), T.mu.data_ptr<double>(), T.con.data_ptr<double>(), T.amp.data_ptr<double>(),
+  const int64_t* count = T.count.data_ptr<int64_t>();
+  T.id = at::empty({L}, i32);
+  T.mu = at::empty({L, 2}, dbl);
+  T.con = at::empty({L, 3}, dbl);
+  T.amp = at::empty({L}, dbl);
+  T.logA = at::empty({L}, dbl);
+  T.sig2 = at::empty({L}, dbl);
+  NS_LAUNCH(gather_kernel<S>, blocks_for(L, kThreads), kThreads, stream, keys, count, B, T.N, T.stride, mu, con, amp,
+            sig2, T.id.data_ptr<int>(), T.mu.data_ptr<double>(), T.con.data_ptr<double>(), T.amp.data_ptr<double>(),
             T.logA.data_ptr<double>(), T.sig2.data_ptr<double>());
   NS_LAUNCH_CHECK();
-  if (n == 1) return;
-  const int64_t ni = n - 1;
-  T.nodes = bytes(ni * static_cast<int64_t>(sizeof(InternalNode)), dev);
-  T.agg = bytes(ni * static_cast<int64_t>(sizeof(NodeAgg)), dev);
-  at::Tensor parent_int = at::full({ni}, -1, i32), parent_leaf = at::full({n}, -1, i32);
-  at::Tensor flags = at::zeros({ni}, i32);
-  NS_LAUNCH(internal_nodes_kernel, blocks_for(ni, kThreads), kThreads, stream, keys, n, as<InternalNode>(T.nodes),
-            parent_int.data_ptr<int>(), parent_leaf.data_ptr<int>());
+  if (I == 0) return;
+  T.nodes = bytes(I * static_cast<int64_t>(sizeof(InternalNode)), dev);
+  T.agg = bytes(I * static_cast<int64_t>(sizeof(NodeAgg)), dev);
+  at::Tensor parent_int = at::full({I}, -1, i32), parent_leaf = at::full({L}, -1, i32);
+  at::Tensor flags = at::zeros({I}, i32);
+  NS_LAUNCH(internal_nodes_kernel, blocks_for(I, kThreads), kThreads, stream, keys, count, B, T.N, T.stride,
+            as<InternalNode>(T.nodes), parent_int.data_ptr<int>(), parent_leaf.data_ptr<int>());
   NS_LAUNCH_CHECK();
-  NS_LAUNCH(propagate_kernel, blocks_for(n, kThreads), kThreads, stream, n, as<InternalNode>(T.nodes),
+  NS_LAUNCH(propagate_kernel, blocks_for(L, kThreads), kThreads, stream, count, B, T.stride, as<InternalNode>(T.nodes),
             parent_int.data_ptr<int>(), parent_leaf.data_ptr<int>(), T.mu.data_ptr<double>(), T.amp.data_ptr<double>(),
             T.sig2.data_ptr<double>(), as<NodeAgg>(T.agg), flags.data_ptr<int>());
   NS_LAUNCH_CHECK();
-  T.herm_p = at::empty({ni}, i32);
-  T.herm_err = at::empty({ni}, dbl);
-  at::Tensor sq = at::zeros({ni + 1}, i64);  // p^2 per node, one trailing zero: the scan's last entry is the total
-  NS_LAUNCH(choose_expansion_kernel, blocks_for(ni, kThreads), kThreads, stream, ni, as<InternalNode>(T.nodes),
-            as<NodeAgg>(T.agg), tol, order, T.herm_p.data_ptr<int>(), T.herm_err.data_ptr<double>(),
-            sq.data_ptr<int64_t>());
+  T.herm_p = at::empty({I}, i32);
+  T.herm_err = at::empty({I}, dbl);
+  at::Tensor sq = at::zeros({I + 1}, i64);  // p^2 per node, one trailing zero: the scan's last entry is the total
+  NS_LAUNCH(choose_expansion_kernel, blocks_for(I, kThreads), kThreads, stream, count, B, T.stride,
+            as<InternalNode>(T.nodes), as<NodeAgg>(T.agg), tol, order, T.herm_p.data_ptr<int>(),
+            T.herm_err.data_ptr<double>(), sq.data_ptr<int64_t>());
   NS_LAUNCH_CHECK();
-  T.herm_off = at::empty({ni + 1}, i64);
-  exclusive_sum(sq.data_ptr<int64_t>(), T.herm_off.data_ptr<int64_t>(), ni + 1, dev, stream);
+  T.herm_off = at::empty({I + 1}, i64);
+  exclusive_sum(sq.data_ptr<int64_t>(), T.herm_off.data_ptr<int64_t>(), I + 1, dev, stream);
 }
 
-// Phase 3, with the coefficient total known on the host: the expansion coefficients.
-inline void tree_coefficients(CudaTree& T, int64_t total, const at::TensorOptions& dev, Stream stream) {
-  if (T.n <= 1) return;
-  const int64_t ni = T.n - 1;
+// Phase 3, with the coefficient total known on the host: the expansion coefficients of every camera's nodes.
+inline void tree_coefficients(CudaTrees& T, int64_t total, const at::TensorOptions& dev, Stream stream) {
+  const int64_t I = T.B * T.inner();
+  if (I == 0) return;
   T.herm_coef = at::zeros({std::max<int64_t>(total, 1)}, dev.dtype(at::kDouble));
-  NS_LAUNCH(coefficients_kernel, blocks_for(ni, kThreads), kThreads, stream, ni, as<InternalNode>(T.nodes),
-            as<NodeAgg>(T.agg), T.herm_p.data_ptr<int>(), T.herm_off.data_ptr<int64_t>(), T.mu.data_ptr<double>(),
-            T.amp.data_ptr<double>(), T.herm_coef.data_ptr<double>());
+  NS_LAUNCH(coefficients_kernel, blocks_for(I, kThreads), kThreads, stream, T.count.data_ptr<int64_t>(), T.B, T.stride,
+            as<InternalNode>(T.nodes), as<NodeAgg>(T.agg), T.herm_p.data_ptr<int>(), T.herm_off.data_ptr<int64_t>(),
+            T.mu.data_ptr<double>(), T.amp.data_ptr<double>(), T.herm_coef.data_ptr<double>());
   NS_LAUNCH_CHECK();
 }
 
@@ -340,15 +430,12 @@ struct CameraGroup {
 };
 
 // Bound metrics of the group nodes (tile.h), one thread per (camera, internal node): camera c's metrics at
-// metric[c stride + i] (stride >= its internal nodes); its thread of node 0 also copies its coefficient total
-// (herm_off[n - 1]) to coef_total[c].
-__global__ void group_metric_kernel(CameraGroup cg, int64_t stride, ItemMetric* __restrict__ metric,
-                                    int64_t* __restrict__ coef_total) {
+// metric[c stride + i] (stride >= its internal nodes).
+__global__ void group_metric_kernel(CameraGroup cg, int64_t stride, ItemMetric* __restrict__ metric) {
   NS_GRID_STRIDE(g, cg.count * stride) {
     const int64_t c = g / stride, i = g % stride;
     const TreeView tv = cg.tv[c];
     if (i >= tv.n - 1) continue;
-    if (i == 0) coef_total[c] = tv.herm_off[tv.n - 1];
     const InternalNode& nd = tv.nodes[i];
     if (nd.last - nd.first + 1 <= kGroupSize) metric[c * stride + i] = group_metric(tv, nd.first, nd.last);
   }
@@ -494,6 +581,41 @@ __device__ __forceinline__ TilePixel tile_pixel(const PixelPass<S>& pp, int64_t 
   return q;
 }
 
+// Thread g of the pixel kernels over camera tiles from T0 (sample_kernel's layout): its camera tile T, heap h, and
+// its lane and pixel l of the tile.
+struct LaneThread {
+  int64_t T, h;
+  CameraTile ct;
+  int lane, l;
+  TilePixel q;
+};
+
+template <typename S>
+__device__ __forceinline__ LaneThread lane_thread(const PixelPass<S>& pp, int64_t T0, int64_t g) {
+  const int64_t per_tile = static_cast<int64_t>(pp.lanes) * kTilePixels;
+  LaneThread th;
+  th.T = T0 + g / per_tile;
+  th.h = T0 * per_tile + g;
+  th.ct = camera_tile(pp, th.T);
+  th.lane = static_cast<int>((g / kTilePixels) % pp.lanes);
+  th.l = static_cast<int>(g % kTilePixels);
+  th.q = tile_pixel(pp, th.ct.t, th.l);
+  return th;
+}
+
+// The search of thread th's lane of its pixel into its heap (tile.h, sample_lane), stopped early below `floor`.
+template <typename S>
+__device__ __forceinline__ LaneStats search_lane(const PixelPass<S>& pp, const LaneThread& th, int64_t T0,
+                                                 double floor) {
+  const double u = static_cast<double>(th.q.px) + 0.5, v = static_cast<double>(th.q.py) + 0.5;
+  const Draw draw = pixel_draw(pp.cg.seed[th.ct.c], pp.cg.camera[th.ct.c], th.q.p, pp.width, pp.stratified);
+  const int n = static_cast<int>(pp.offsets[th.T + 1] - pp.offsets[th.T]);
+  uint8_t* bins = pp.bin8 + (pp.offsets[th.T] - pp.offsets[T0]) * kTilePixels + th.l;
+  return sample_lane(pp.cg.tv[th.ct.c], pp.items + pp.offsets[th.T], n, pp.near_counts[th.T], u, v, draw, pp.m,
+                     pp.log_eps, floor, th.lane, pp.lanes, pp.key + th.h, pp.heap_idx + th.h, pp.heaps, bins,
+                     kTilePixels);
+}
+
 // Sampling of a camera group over its camera tiles [T0, T1), `lanes` threads per pixel (tile.h, "Lanes"): thread
 // g takes camera tile T0 + g / (lanes kTilePixels), lane (g / kTilePixels) % lanes and pixel g % kTilePixels of the
 // tile, so that the 16 threads of a (tile, lane) read the same items (idle past the image's edge), and heap
@@ -505,33 +627,23 @@ template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     sample_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
   const int m = pp.m, lanes = pp.lanes;
-  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels, P = pp.width * pp.height;
-  NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
-    const int64_t T = T0 + g / per_tile, h = T0 * per_tile + g;
-    const CameraTile ct = camera_tile(pp, T);
-    const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
-    const TilePixel q = tile_pixel(pp, ct.t, l);
-    if (!q.inside) continue;
-    const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
-    const Draw draw = pixel_draw(pp.cg.seed[ct.c], pp.cg.camera[ct.c], q.p, pp.width, pp.stratified);
-    const int n = static_cast<int>(pp.offsets[T + 1] - pp.offsets[T]);
-    uint8_t* bins = pp.bin8 + (pp.offsets[T] - pp.offsets[T0]) * kTilePixels + l;
-    const TileItem* items = pp.items + pp.offsets[T];
-    const TreeView tv = pp.cg.tv[ct.c];
-    if (lanes == 1) {
-      const LaneStats ls = sample_lane(tv, items, n, pp.near_counts[T], u, v, draw, m, pp.log_eps, kMinTotal, 0, 1,
-                                       pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
-      const Ray ray = pixel_ray(pp.K + ct.b * 9, u, v);
-      const int64_t o = ct.b * P + q.p;
-      finalize_pixel(pp.base.camera(ct.b), u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
-                     ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, pp.key + h, pp.heap_idx + h,
-                     pp.heaps, pp.idx + o * m, pp.prob + o * m);
-      pp.total[o] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
-      pp.work[o] = ls.px.evaluated;
-    } else {
-      pp.lane_stats[h] = sample_lane(tv, items, n, pp.near_counts[T], u, v, draw, m, pp.log_eps, kMinTotal / lanes,
-                                     lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps, bins, kTilePixels);
+  const int64_t P = pp.width * pp.height;
+  NS_GRID_STRIDE(g, (T1 - T0) * lanes * kTilePixels) {
+    const LaneThread th = lane_thread(pp, T0, g);
+    if (!th.q.inside) continue;
+    if (lanes > 1) {
+      pp.lane_stats[th.h] = search_lane(pp, th, T0, kMinTotal / lanes);
+      continue;
     }
+    const LaneStats ls = search_lane(pp, th, T0, kMinTotal);
+    const double u = static_cast<double>(th.q.px) + 0.5, v = static_cast<double>(th.q.py) + 0.5;
+    const Ray ray = pixel_ray(pp.K + th.ct.b * 9, u, v);
+    const int64_t o = th.ct.b * P + th.q.p;
+    finalize_pixel(pp.base.camera(th.ct.b), u, v, ray, m, ls.cnt, ls.px.total, ls.px.rest,
+                   ls.px.exhaustive && ls.px.evaluated == ls.cnt, pp.inclusion, pp.key + th.h, pp.heap_idx + th.h,
+                   pp.heaps, pp.idx + o * m, pp.prob + o * m);
+    pp.total[o] = static_cast<S>(ls.px.total < kMinTotal ? 0.0 : ls.px.total);
+    pp.work[o] = ls.px.evaluated;
   }
 }
 
@@ -556,31 +668,21 @@ __device__ __forceinline__ double lanes_bound(const LaneStats* ls, int64_t h0, i
 template <typename S>
 __global__ void __launch_bounds__(kPixelThreads)
     merge_prepare_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
-  const int lanes = pp.lanes;
-  const int64_t per_tile = static_cast<int64_t>(lanes) * kTilePixels;
+  const int64_t per_tile = static_cast<int64_t>(pp.lanes) * kTilePixels;
   NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
-    const int64_t T = T0 + g / per_tile, h = T0 * per_tile + g;
-    const CameraTile ct = camera_tile(pp, T);
-    const int lane = static_cast<int>((g / kTilePixels) % lanes), l = static_cast<int>(g % kTilePixels);
-    const TilePixel q = tile_pixel(pp, ct.t, l);
-    if (!q.inside) continue;
-    LaneStats& ls = pp.lane_stats[h];
-    if (lanes_bound(pp.lane_stats, T * per_tile + l, lanes) < kMinTotal) {
+    const LaneThread th = lane_thread(pp, T0, g);
+    if (!th.q.inside) continue;
+    LaneStats& ls = pp.lane_stats[th.h];
+    if (lanes_bound(pp.lane_stats, th.T * per_tile + th.l, pp.lanes) < kMinTotal) {
       ls.cnt = 0;
       continue;
     }
     if (ls.floored) {
-      const double u = static_cast<double>(q.px) + 0.5, v = static_cast<double>(q.py) + 0.5;
-      const Draw draw = pixel_draw(pp.cg.seed[ct.c], pp.cg.camera[ct.c], q.p, pp.width, pp.stratified);
-      const int n = static_cast<int>(pp.offsets[T + 1] - pp.offsets[T]);
-      uint8_t* bins = pp.bin8 + (pp.offsets[T] - pp.offsets[T0]) * kTilePixels + l;
-      const LaneStats again = sample_lane(pp.cg.tv[ct.c], pp.items + pp.offsets[T], n, pp.near_counts[T], u, v, draw,
-                                          pp.m, pp.log_eps, 0.0, lane, lanes, pp.key + h, pp.heap_idx + h, pp.heaps,
-                                          bins, kTilePixels);
+      const LaneStats again = search_lane(pp, th, T0, 0.0);
       ls.px = again.px;
       ls.cnt = again.cnt;
     }
-    heap_sort(pp.key + h, pp.heap_idx + h, pp.heaps, ls.cnt);
+    heap_sort(pp.key + th.h, pp.heap_idx + th.h, pp.heaps, ls.cnt);
   }
 }
 
@@ -629,11 +731,10 @@ __global__ void __launch_bounds__(kPixelThreads)
     merge_rank_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
   const int64_t per_tile = static_cast<int64_t>(pp.lanes) * kTilePixels;
   NS_GRID_STRIDE(g, (T1 - T0) * per_tile) {
-    const int64_t T = T0 + g / per_tile;
-    const int lane = static_cast<int>((g / kTilePixels) % pp.lanes), l = static_cast<int>(g % kTilePixels);
-    if (!tile_pixel(pp, camera_tile(pp, T).t, l).inside) continue;
-    const int64_t hm = T * kTilePixels + l;
-    rank_lane(pp.key, pp.heap_idx, pp.heaps, pp.lane_stats, T * per_tile + l, lane, pp.lanes, pp.m,
+    const LaneThread th = lane_thread(pp, T0, g);
+    if (!th.q.inside) continue;
+    const int64_t hm = th.T * kTilePixels + th.l;
+    rank_lane(pp.key, pp.heap_idx, pp.heaps, pp.lane_stats, th.T * per_tile + th.l, th.lane, pp.lanes, pp.m,
               pp.merged_key + hm, pp.merged_idx + hm, pp.merged, pp.merged_rest + hm);
   }
 }
@@ -843,19 +944,18 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
     using S = scalar_t;
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
-    const auto cam = [&](const at::Tensor& t, int64_t b, int64_t c) { return t.data_ptr<S>() + b * N * c; };
     // Every camera's tree and tile lists, with two reads of sizes back to the host for the whole call: the valid
     // counts, then `sizes`: per group g (cameras g group ..), the item offsets of its camera tiles (group tiles + 1
-    // entries from g (group tiles + 1)), then each camera's coefficient total (from B tiles + groups).
-    std::vector<CudaTree> trees(B);
-    at::Tensor counts = at::zeros({B}, i64);
-    for (int64_t b = 0; b < B; ++b)
-      tree_keys<S>(trees[b], cam(mu, b, 2), cam(amp, b, 1), cam(sig2, b, 1), N, counts.data_ptr<int64_t>() + b, opts,
-                   stream);
-    const at::Tensor counts_host = to_host(counts);  // synchronises (1 of 2)
+    // entries from g (group tiles + 1)), then the trees' coefficient total (entry B tiles + groups).
+    CudaTrees trees;
+    tree_keys<S>(trees, mu.data_ptr<S>(), amp.data_ptr<S>(), sig2.data_ptr<S>(), B, N, opts, stream);
+    const at::Tensor counts_host = to_host(trees.count);  // synchronises (1 of 2)
     const int64_t* n_host = counts_host.data_ptr<int64_t>();
-    at::Tensor sizes = at::zeros({B * tiles + groups + B}, i64);
+    tree_nodes<S>(trees, std::vector<int64_t>(n_host, n_host + B), mu.data_ptr<S>(), con.data_ptr<S>(),
+                  amp.data_ptr<S>(), sig2.data_ptr<S>(), static_cast<int>(order), tol, opts, stream);
+    at::Tensor sizes = at::zeros({B * tiles + groups + 1}, i64);
     int64_t* const sizes_d = sizes.data_ptr<int64_t>();
+    if (trees.herm_off.defined()) sizes.narrow(0, B * tiles + groups, 1).copy_(trees.herm_off.narrow(0, trees.herm_off.size(0) - 1, 1));
     std::vector<CameraGroup> cgs(groups);
     std::vector<at::Tensor> metrics(groups), slot_offsets(groups);
     const TileGrid grid{width, height, tiles_x, tiles, log_theta, log_far};
@@ -868,15 +968,13 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       metrics[g] = bytes(cg.count * stride * static_cast<int64_t>(sizeof(ItemMetric)), opts);
       for (int64_t c = 0; c < cg.count; ++c) {
         const int64_t b = cg.first + c;
-        tree_nodes<S>(trees[b], n_host[b], cam(mu, b, 2), cam(con, b, 3), cam(amp, b, 1), cam(sig2, b, 1),
-                      static_cast<int>(order), tol, opts, stream);
-        cg.tv[c] = trees[b].view();
+        cg.tv[c] = trees.view(b);
         cg.tv[c].metric = as<ItemMetric>(metrics[g]) + c * stride;
         cg.seed[c] = static_cast<uint64_t>(st[2 * b]);
         cg.camera[c] = st[2 * b + 1];
       }
       NS_LAUNCH(group_metric_kernel, blocks_for(cg.count * stride, kThreads), kThreads, stream, cg, stride,
-                as<ItemMetric>(metrics[g]), sizes_d + B * tiles + groups + cg.first);
+                as<ItemMetric>(metrics[g]));
       NS_LAUNCH_CHECK();
       // the slots' item counts and their exclusive scan (one trailing zero: the last offset is the total), and the
       // camera tiles' offsets into the group's part of `sizes`
@@ -892,16 +990,13 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       NS_LAUNCH_CHECK();
     }
     const at::Tensor sizes_host = to_host(sizes);  // synchronises (2 of 2)
+    tree_coefficients(trees, sizes_host.data_ptr<int64_t>()[B * tiles + groups], opts, stream);
     for (int64_t g = 0; g < groups; ++g) {
       CameraGroup& cg = cgs[g];
       const int64_t gt = cg.count * tiles;  // the group's camera tiles
       const int64_t* off_h = sizes_host.data_ptr<int64_t>() + cg.first * tiles + g;
       const int64_t* offsets = sizes_d + cg.first * tiles + g;
-      for (int64_t c = 0; c < cg.count; ++c) {
-        const int64_t b = cg.first + c;
-        tree_coefficients(trees[b], sizes_host.data_ptr<int64_t>()[B * tiles + groups + b], opts, stream);
-        cg.tv[c].herm_coef = CudaTree::ptr<double>(trees[b].herm_coef);
-      }
+      for (int64_t c = 0; c < cg.count; ++c) cg.tv[c].herm_coef = trees.view(cg.first + c).herm_coef;
       const int64_t n_items = off_h[gt];
       at::Tensor items = bytes(std::max<int64_t>(n_items, 1) * static_cast<int64_t>(sizeof(TileItem)), opts);
       at::Tensor near_counts = at::zeros({gt}, opts.dtype(at::kInt));
@@ -952,8 +1047,6 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
         }
         T0 = T1;
       }
-      // the group's trees go back to the caching allocator here, in stream order
-      for (int64_t c = 0; c < cg.count; ++c) trees[cg.first + c] = CudaTree();
     }
   });
   return {indices, probs, total, work};
@@ -985,6 +1078,8 @@ std::vector<at::Tensor> merge_lanes_emulated(const at::Tensor& key, const at::Te
                 P, rest.data_ptr<double>() + p);
   return {out_key.t().contiguous(), out_idx.t().contiguous(), rest};
 }
+
+int64_t launches_emulated() { return emu::launch_count; }
 #endif
 
 int64_t host_reads_cuda() { return host_read_count().load(); }
