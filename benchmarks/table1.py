@@ -11,8 +11,9 @@ interrupted one resumes from its checkpoint). Methods, all with the same data, i
 
 ``--seeds 3`` runs ``ht`` and ``sampled`` with 3 seeds (the table shows mean ± std) and the others with one.
 
-Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe at 256², 3–6 minutes a run on one thread),
-``recipe-64`` (64², 45 epochs, every rate 0.01: about 2 minutes a run, the full comparison),
+Settings (``--setting``): ``recipe`` (the shipped configs: the CPU recipe at 256², 3–6 minutes a run on one thread,
+15–25 for truncated; the full comparison with ``--seeds 3`` takes about 100 minutes on 2 cores),
+``recipe-64`` (64², 45 epochs, every rate 0.01: about 2 minutes a run; the earlier comparison, docs/history.md),
 ``cpu`` (default; the earlier budget of 32² images and 80 steps, see docs/results.md),
 ``cpu-long`` (the same with 48 views and 400 steps: how the comparison moves with optimisation time) or
 ``paper`` (124 views, 300 epochs, batch 12, lr 0.01, repositioning every epoch; for a big machine).
@@ -70,8 +71,8 @@ def learning_rate(lr: float) -> list[str]:
 SETTINGS = {
     # the shipped configs as they are: the CPU recipe (3-6 minutes a run on one thread)
     "recipe": [],
-    # 64x64 images, 45 epochs, the hull at 64^3, every rate 0.01 (about 2 minutes a run): Table 1's full method
-    # comparison, every shape and seed, within a session's CPU time
+    # 64x64 images, 45 epochs, the hull at 64^3, every rate 0.01 (about 2 minutes a run): the comparison made before
+    # the 256^2 recipe's (docs/history.md, "Table 1 at 64²")
     "recipe-64": ["data.width=64", "data.height=64", "init.grid=64", "optim.epochs=45", *learning_rate(0.01)],
     "cpu": ["data.width=32", "data.height=32", "data.views=24", "init.count=2000", "optim.epochs=20", "optim.batch=6",
             *learning_rate(0.03), "optim.reposition.every=5", "log.validate=20", "log.checkpoint=4"],
@@ -142,14 +143,15 @@ def prepare_gt(jobs: list[tuple[str, str, list[str]]], args: argparse.Namespace)
 
 def run_all(jobs: list[tuple], table: str, args: argparse.Namespace) -> list[dict]:
     """Run ``(name, shape, overrides[, seed])`` jobs (seed: ``args.seed`` when absent) with ``args.jobs``
-    processes in parallel."""
+    processes in parallel. Only the first seed's runs copy their images to docs/images/reconstruct."""
     setting = SETTINGS[args.setting]
     if not args.collect_only:
         prepare_gt([job[:3] for job in jobs], args)
+    seed = {job[0]: job[3] if len(job) > 3 else args.seed for job in jobs}
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         futures = [pool.submit(run_one, job[0], job[1], setting + job[2] + list(args.override),
-                               f"{table}-{args.setting}", args.device, job[3] if len(job) > 3 else args.seed,
-                               args.threads, args.collect_only) for job in jobs]
+                               f"{table}-{args.setting}", args.device, seed[job[0]], args.threads, args.collect_only,
+                               seed[job[0]] == args.seed) for job in jobs]
         return [f.result() for f in futures]
 
 
