@@ -18,25 +18,10 @@
 
 #include "../api.h"  // camera_features
 #include "../core/composite.h"
+#include "splat_rows.h"
 
 namespace nsplat {
 namespace {
-
-int scatter_threads() { return std::max(1, at::get_num_threads()); }
-
-template <typename S>
-SplatsView<S> scatter_view(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
-                           const at::Tensor& off, const at::Tensor& zc, int64_t b) {
-  const int64_t N = amp.size(1);
-  SplatsView<S> v;
-  v.mu = mu.data_ptr<S>() + b * N * 2;
-  v.con = con.data_ptr<S>() + b * N * 3;
-  v.amp = amp.data_ptr<S>() + b * N;
-  v.nrm = nrm.data_ptr<S>() + b * N * 3;
-  v.off = off.data_ptr<S>() + b * N;
-  v.zc = zc.data_ptr<S>() + b * N;
-  return v;
-}
 
 template <typename S>
 inline void atomic_add(S* dst, S v) {
@@ -55,7 +40,7 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
   const int64_t B = indices.size(0), H = indices.size(1), W = indices.size(2), m = indices.size(3);
   const int64_t N = amp.size(1), C = feat.size(-1), P = H * W;
   const bool per_camera = feat.dim() == 3;  // [B,N,C]: camera b's own features, and gradients
-  const int nt = scatter_threads();
+  const int nt = num_threads();
   const int* idx_all = indices.data_ptr<int>();
   const bool paper = estimator == kPaper;
   std::vector<int> count;
@@ -78,19 +63,13 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
   const S* gd = g_depth.data_ptr<S>();
   const S* bgp = bg.data_ptr<S>();
   const S* pr = probs.data_ptr<S>();
-  S* o_mu = out[0].data_ptr<S>();
-  S* o_con = out[1].data_ptr<S>();
-  S* o_amp = out[2].data_ptr<S>();
-  S* o_nrm = out[3].data_ptr<S>();
-  S* o_off = out[4].data_ptr<S>();
-  S* o_zc = out[5].data_ptr<S>();
-  S* o_feat = out[6].data_ptr<S>();
+  const GradRows<S> rows(out);
   S* o_bgw = out[7].data_ptr<S>();
 #pragma omp parallel num_threads(nt)
   {
     std::vector<S> da(m), wf(m);
     for (int64_t b = 0; b < B; ++b) {
-      const SplatsView<S> sv = scatter_view<S>(mu, con, amp, nrm, off, zc, b);
+      const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
       const double* K = Kd.data_ptr<double>() + b * 9;
       const S* fe = camera_features<S>(feat, b);
 #pragma omp for schedule(static)
@@ -106,18 +85,12 @@ void scatter_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor&
           const int k = idx[j];
           if (k < 0) break;
           const S scale = paper ? S(1) / S(count[b * N + k]) : S(1);
-          S a_mu[2] = {0, 0}, a_con[3] = {0, 0, 0}, a_amp = 0, a_nrm[3] = {0, 0, 0}, a_off = 0, a_zc = 0;
-          splat_grad_entry(sv, k, S(u), S(v), ray, da[j] * scale, wf[j] * gd[o] * scale, a_mu, a_con, &a_amp, a_nrm,
-                           &a_off, &a_zc);
+          SplatGrad<S> g;
+          g.add(sv, k, S(u), S(v), ray, da[j] * scale, wf[j] * gd[o] * scale);
           const int64_t bk = b * N + k;
-          for (int c = 0; c < 2; ++c) atomic_add(o_mu + bk * 2 + c, a_mu[c]);
-          for (int c = 0; c < 3; ++c) atomic_add(o_con + bk * 3 + c, a_con[c]);
-          for (int c = 0; c < 3; ++c) atomic_add(o_nrm + bk * 3 + c, a_nrm[c]);
-          atomic_add(o_amp + bk, a_amp);
-          atomic_add(o_off + bk, a_off);
-          atomic_add(o_zc + bk, a_zc);
+          rows.put(bk, g, S(1), atomic_add<S>);
           const S wfs = wf[j] * scale;
-          S* of = o_feat + (per_camera ? bk : static_cast<int64_t>(k)) * C;
+          S* of = rows.feat + (per_camera ? bk : static_cast<int64_t>(k)) * C;
           for (int64_t c = 0; c < C; ++c) atomic_add(of + c, wfs * gi[o * C + c]);
         }
       }

@@ -17,11 +17,10 @@
 #include "../core/tile.h"
 #include "../core/tree_build.h"
 #include "lanes_api.h"
+#include "splat_rows.h"
 
 namespace nsplat {
 namespace {
-
-int num_threads() { return std::max(1, at::get_num_threads()); }
 
 // A camera's tree with its storage. The storage is kept from one tree to the next (a thread's trees reuse it:
 // sample_impl), so that a step's tree costs its writes, not fresh pages and their zero fill.
@@ -169,20 +168,6 @@ void build_tree(CpuTree& T, const S* mu, const S* con, const S* amp, const S* si
     T.state_cap = ni;
   }
   for (int64_t i = 0; i < ni; ++i) T.herm_state[i].store(0, std::memory_order_relaxed);
-}
-
-template <typename S>
-SplatsView<S> splats_of(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& amp, const at::Tensor& nrm,
-                        const at::Tensor& off, const at::Tensor& zc, int64_t b) {
-  const int64_t N = amp.size(1);
-  SplatsView<S> v;
-  v.mu = mu.data_ptr<S>() + b * N * 2;
-  v.con = con.data_ptr<S>() + b * N * 3;
-  v.amp = amp.data_ptr<S>() + b * N;
-  v.nrm = nrm.data_ptr<S>() + b * N * 3;
-  v.off = off.data_ptr<S>() + b * N;
-  v.zc = zc.data_ptr<S>() + b * N;
-  return v;
 }
 
 void check_cpu(const std::vector<at::Tensor>& ts) {
@@ -432,13 +417,7 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
   const S* w = wf.data_ptr<S>();
   const S* gi = g_img.data_ptr<S>();
   const S* gd = g_depth.data_ptr<S>();
-  S* o_mu = out[0].data_ptr<S>();
-  S* o_con = out[1].data_ptr<S>();
-  S* o_amp = out[2].data_ptr<S>();
-  S* o_nrm = out[3].data_ptr<S>();
-  S* o_off = out[4].data_ptr<S>();
-  S* o_zc = out[5].data_ptr<S>();
-  S* o_feat = out[6].data_ptr<S>();
+  const GradRows<S> rows(out);
   const int nt = num_threads();
 #pragma omp parallel num_threads(nt)
   {
@@ -451,7 +430,7 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
         const int64_t b = ent[e] / (P * m);
         const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
         const double* K = Kd.data_ptr<double>() + b * 9;
-        S a_mu[2] = {0, 0}, a_con[3] = {0, 0, 0}, a_amp = 0, a_nrm[3] = {0, 0, 0}, a_off = 0, a_zc = 0;
+        SplatGrad<S> g;
         std::fill(gf.begin(), gf.end(), S(0));
         int64_t count = 0;
         for (; e < end && ent[e] / (P * m) == b; ++e, ++count) {
@@ -461,19 +440,13 @@ void backward_points_impl(const at::Tensor& mu, const at::Tensor& con, const at:
           const double u = double(pix % width) + 0.5, v = double(pix / width) + 0.5;
           const Ray ray = pixel_ray(K, u, v);
           for (int64_t c = 0; c < C; ++c) gf[c] += w[flat] * gi[o * C + c];
-          splat_grad_entry(sv, static_cast<int>(k), S(u), S(v), ray, da[flat], w[flat] * gd[o], a_mu, a_con, &a_amp,
-                           a_nrm, &a_off, &a_zc);
+          g.add(sv, static_cast<int>(k), S(u), S(v), ray, da[flat], w[flat] * gd[o]);
         }
         const S scale = paper ? S(1) / S(count) : S(1);
         const int64_t bk = b * N + k;
-        for (int c = 0; c < 2; ++c) o_mu[bk * 2 + c] = a_mu[c] * scale;
-        for (int c = 0; c < 3; ++c) o_con[bk * 3 + c] = a_con[c] * scale;
-        for (int c = 0; c < 3; ++c) o_nrm[bk * 3 + c] = a_nrm[c] * scale;
-        o_amp[bk] = a_amp * scale;
-        o_off[bk] = a_off * scale;
-        o_zc[bk] = a_zc * scale;
+        rows.put(bk, g, scale, [](S* dst, S value) { *dst = value; });
         const int64_t fk = per_camera ? bk : k;  // [B,N,C] features: camera b's own row
-        for (int64_t c = 0; c < C; ++c) o_feat[fk * C + c] += gf[c] * scale;
+        for (int64_t c = 0; c < C; ++c) rows.feat[fk * C + c] += gf[c] * scale;
       }
     }
   }
