@@ -171,7 +171,9 @@ class Engine:
         """Run ``step(k)`` for ``k = start … steps-1``; returns the last step's scalars (floats).
 
         Args:
-            trainables: what is checkpointed (its ``extra["seconds"]`` accumulates step time).
+            trainables: what is checkpointed: its ``extra["seconds"]`` and ``extra["cpu_seconds"]`` accumulate the
+                steps' wall and CPU time over every segment of a resumed run (``extra["cpu_since"]``: the step
+                from which CPU time is counted, later than 0 when the run began before it was).
             step: the task's step; returns scalars, floats or 0-dim tensors (on any device). They are copied to
                 the host only when logged (every ``log.every`` steps and the last), so a GPU step need not wait
                 for its own results; ``time/step_s`` is then the host's time per step.
@@ -192,12 +194,16 @@ class Engine:
                    disable=not (lg.progress and main))
         scalars: dict[str, float | torch.Tensor] = {}
         shown: dict[str, str] = {}  # the bar's postfix: the last logged step's scalars and last validation
+        extra = trainables.extra
+        if "cpu_seconds" not in extra:
+            extra.update(cpu_seconds=0.0, cpu_since=start)
         try:
             for k in range(start, self.steps):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 scalars = step(k)
                 dt = time.perf_counter() - t0
-                trainables.extra["seconds"] = float(trainables.extra.get("seconds", 0.0)) + dt
+                extra["seconds"] = float(extra.get("seconds", 0.0)) + dt
+                extra["cpu_seconds"] = float(extra["cpu_seconds"]) + time.process_time() - c0
                 done, last = k + 1, k + 1 == self.steps
                 bar.update(1)
                 logged = lg.due(lg.every, done, last)

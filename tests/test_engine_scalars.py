@@ -46,3 +46,49 @@ def test_reduced_scalars_stay_tensors_without_a_group():
     loss = torch.tensor(2.5, dtype=torch.float64)
     out = distributed.all_reduce_scalars({"train/loss": loss, "lr": 0.1})
     assert out["train/loss"] is loss and out["lr"] == 0.1
+
+
+def _busy_step(k: int) -> dict:
+    """A step that spends measurable CPU time (a few ms) and fails at step 3 of a first segment."""
+    if k == 3 and _busy_step.fail:
+        raise KeyboardInterrupt
+    x = torch.ones(200_000, dtype=torch.float64)
+    for _ in range(20):
+        x = x.sqrt() + 1.0
+    return {"loss": float(x[0])}
+
+
+def _segment(run_dir, payload=None) -> Trainables:
+    t = Trainables(modules={"m": nn.Linear(1, 1)})
+    engine = Engine(run_dir, LogConfig(every=1, images=0, validate=0, checkpoint=1, progress=False), 6)
+    start = engine.resume(t, payload)
+    try:
+        engine.train(t, _busy_step, start=start)
+    except KeyboardInterrupt:
+        pass
+    return t
+
+
+def test_step_times_accumulate_over_the_segments_of_a_resumed_run(tmp_path):
+    from nsplat.checkpoint import load_checkpoint
+
+    _busy_step.fail = True
+    first = _segment(tmp_path / "run")  # killed in step 3: the checkpoint after step 3 holds steps 0-2
+    saved = load_checkpoint(tmp_path / "run", map_location="cpu")
+    assert saved["step"] == 3 and saved["extra"]["cpu_since"] == 0
+    assert 0 < saved["extra"]["cpu_seconds"] and 0 < saved["extra"]["seconds"]
+    _busy_step.fail = False
+    resumed = _segment(tmp_path / "run", saved)
+    assert resumed.extra["cpu_since"] == 0
+    # steps 3-5 add to the first segment's totals (and the killed step 3 of the first segment is not counted)
+    assert resumed.extra["cpu_seconds"] > saved["extra"]["cpu_seconds"]
+    assert resumed.extra["seconds"] > saved["extra"]["seconds"]
+    assert first.extra["cpu_seconds"] == saved["extra"]["cpu_seconds"]
+
+    # a checkpoint written before CPU time was counted: counting starts at the resumed step
+    old = load_checkpoint(tmp_path / "run", map_location="cpu")
+    old["step"] = 3
+    for key in ("cpu_seconds", "cpu_since"):
+        del old["extra"][key]
+    late = _segment(tmp_path / "late", old)
+    assert late.extra["cpu_since"] == 3 and late.extra["cpu_seconds"] > 0

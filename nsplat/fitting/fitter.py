@@ -166,7 +166,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         validate: the engine's validation hook ``f(step, writer) -> scalars`` (e.g. shape metrics).
 
     Returns:
-        the last step's scalars.
+        the last step's scalars, with ``time/train_s`` and ``time/train_cpu_s``: the wall and CPU seconds of the
+        steps over every segment of a resumed run (CPU time from step ``time/cpu_since``, see
+        :meth:`nsplat.engine.Engine.train`).
     """
     if cfg.max_scale > 0 and scene.cfg.scale is not None:
         raise ConfigError(f"max_scale: needs per-point scales (scene.scale: null); this scene's std-dev is the "
@@ -227,6 +229,8 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         return out
 
     cams = cameras_of(views.images, views.viewmats, views.Ks)
-    return engine.train(t, step, start=start, validate=validate,
-                        view=lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
-                                                 render_cfg=render_cfg, task=desc, seed=op_seed(seed, "eval")))
+    scalars = engine.train(t, step, start=start, validate=validate,
+                           view=lambda: surfel_view(scene, cams, shading=cfg.shading, background=background,
+                                                    render_cfg=render_cfg, task=desc, seed=op_seed(seed, "eval")))
+    return {**scalars, "time/train_s": float(t.extra.get("seconds", 0.0)),
+            "time/train_cpu_s": float(t.extra.get("cpu_seconds", 0.0)), "time/cpu_since": int(t.extra["cpu_since"])}

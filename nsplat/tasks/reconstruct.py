@@ -3,7 +3,9 @@
 Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`), with their coverage. Init
 (``init.kind``): the surface of the training views' visual hull, or a Fibonacci sphere enclosing the object (the
 paper's). Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder:
-``metrics.json`` (Hausdorff/Chamfer, both definitions, see :mod:`nsplat.metrics`; the held-out PSNR),
+``metrics.json`` (Hausdorff/Chamfer, both definitions, see :mod:`nsplat.metrics`; the held-out PSNR; ``fit_seconds`` /
+``cpu_seconds`` of this process, ``train_seconds`` / ``train_cpu_seconds`` of the steps over every segment of a
+resumed run),
 ``reconstruction.ply``, ``renders/*.png`` (GT | result).
 Data-parallel under torchrun (the fitter's, docs/distributed.md); rank 0 writes the outputs.
 """
@@ -186,7 +188,9 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, float]:
         return {}
     metrics = _finish(cfg, ctx, pc, scene)
     metrics.update(init={k: v for k, v in init_metrics.items()}, final_loss=scalars.get("train/loss"),
-                   fit_seconds=time.time() - t0, cpu_seconds=time.process_time() - c0)
+                   fit_seconds=time.time() - t0, cpu_seconds=time.process_time() - c0,
+                   train_seconds=scalars["time/train_s"], train_cpu_seconds=scalars["time/train_cpu_s"],
+                   train_cpu_since_step=scalars["time/cpu_since"])
     write_json(ctx.run_dir / "metrics.json", metrics)
     results.info("chamfer %.3e (sq %.3e)  hausdorff %.3e (sq %.3e)  held-out PSNR %.2f dB", metrics["chamfer"],
                  metrics["chamfer_sq"], metrics["hausdorff"], metrics["hausdorff_sq"], metrics["heldout_psnr"])
