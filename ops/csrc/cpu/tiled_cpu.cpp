@@ -18,6 +18,7 @@
 
 #include "../core/ewa.h"
 #include "../core/sps.h"
+#include "splat_rows.h"
 #include "tiled_cpu.h"
 
 namespace nsplat {
@@ -41,17 +42,11 @@ void tiled_impl(const at::Tensor& mu, const at::Tensor& con, const at::Tensor& a
                 at::Tensor& alpha, at::Tensor& depth, at::Tensor& weights) {
   const int64_t B = amp.size(0), N = amp.size(1), H = image.size(1), W = image.size(2), C = feat.size(-1);
   const int64_t tx = (W + kTiledTile - 1) / kTiledTile, ty = (H + kTiledTile - 1) / kTiledTile;
-  const int nt = std::max(1, at::get_num_threads());
+  const int nt = num_threads();
   std::vector<int64_t> start(tx * ty + 1);
   std::vector<int> items;
   for (int64_t b = 0; b < B; ++b) {
-    SplatsView<S> sv;
-    sv.mu = mu.data_ptr<S>() + b * N * 2;
-    sv.con = con.data_ptr<S>() + b * N * 3;
-    sv.amp = amp.data_ptr<S>() + b * N;
-    sv.nrm = nrm.data_ptr<S>() + b * N * 3;
-    sv.off = off.data_ptr<S>() + b * N;
-    sv.zc = zc.data_ptr<S>() + b * N;
+    const SplatsView<S> sv = splats_of<S>(mu, con, amp, nrm, off, zc, b);
     const S* s2 = sig2.data_ptr<S>() + b * N;
     const double* K = Kd.data_ptr<double>() + b * 9;
     const S* fb = feat.data_ptr<S>() + (feat.dim() == 3 ? b * N * C : 0);
