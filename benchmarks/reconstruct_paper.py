@@ -21,26 +21,34 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from benchmarks.common import markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.data.pointclouds import load_shape
-from nsplat.metrics import bbox_diagonal, nn_distances
+from nsplat.metrics import bbox_diagonal
 from nsplat.tasks import reconstruct
 
 
-def point_spread(points: np.ndarray, albedo: np.ndarray, gt: np.ndarray, far: float) -> dict[str, float]:
-    """Where ``points [N,3]`` (albedo ``[N,3]``) lie against ``gt [M,3]``: ``{far_share, far_albedo, near_albedo,
-    p50, p90, p99}`` (distances to the nearest GT point in units of the GT's bounding-box diagonal; ``far``: the
-    distance beyond which a point counts as far; the albedos are medians of the RGB norm, NaN for an empty set)."""
-    d = nn_distances(points, gt) / bbox_diagonal(gt)
+def point_spread(points: np.ndarray, albedo: np.ndarray, gt: np.ndarray, gt_normals: np.ndarray,
+                 far: float) -> dict[str, float]:
+    """Where ``points [N,3]`` (albedo ``[N,3]``) lie against ``gt [M,3]`` (outward normals ``gt_normals [M,3]``).
+
+    Returns ``{far_share, far_albedo, near_albedo, inside_share, inside_albedo, outside_share, outside_albedo,
+    p50, p90, p99}``: distances to the nearest GT point in units of the GT's bounding-box diagonal; ``far``: the
+    distance beyond which a point counts as far; a far point is inside (hidden in the volume) or outside (a floater)
+    by the side of its nearest GT point's normal; the albedos are medians of the RGB norm, NaN for an empty set;
+    the shares are of all points."""
+    dist, nearest = cKDTree(gt).query(points)
+    d = dist / bbox_diagonal(gt)
     bright = np.linalg.norm(albedo, axis=1)
     is_far = d > far
-    return {"far_share": float(is_far.mean()),
-            "far_albedo": float(np.median(bright[is_far])) if is_far.any() else float("nan"),
-            "near_albedo": float(np.median(bright[~is_far])) if (~is_far).any() else float("nan"),
-            **{f"p{q}": float(np.quantile(d, q / 100)) for q in (50, 90, 99)}}
+    inside = ((points - gt[nearest]) * gt_normals[nearest]).sum(axis=1) < 0
+    groups = {"far": is_far, "near": ~is_far, "inside": is_far & inside, "outside": is_far & ~inside}
+    out = {f"{k}_share": float(m.mean()) for k, m in groups.items() if k != "near"}
+    out |= {f"{k}_albedo": float(np.median(bright[m])) if m.any() else float("nan") for k, m in groups.items()}
+    return out | {f"p{q}": float(np.quantile(d, q / 100)) for q in (50, 90, 99)}
 
 
 def trajectory(run_dir: Path) -> dict[str, list]:
@@ -67,14 +75,18 @@ def main() -> None:
     pc = load_shape(cfg.data.shape, cfg.data.root or None)
     scene = reconstruct.restore(cfg, types.SimpleNamespace(run_dir=args.run, device=torch.device("cpu")))
     spread = point_spread(scene.means.detach().double().numpy(), scene.features.detach().double().numpy(),
-                          pc.points.double().numpy(), args.far)
+                          pc.points.double().numpy(), pc.normals.double().numpy(), args.far)
     traj = trajectory(args.run)
+    since, steps = metrics.get("train_cpu_since_step", 0), metrics["epochs"] * -(-metrics["views"] // cfg.optim.batch)
     row = [metrics["shape"], f"{metrics['chamfer']:.4f}", f"{metrics['hausdorff']:.3f}",
-           f"{metrics['heldout_psnr']:.2f} dB", f"{spread['far_share']:.0%}", f"{spread['far_albedo']:.2f}",
-           f"{spread['near_albedo']:.2f}", sum(traj["moved"]),
-           f"{metrics['train_seconds'] / 3600:.2f} h / {metrics['train_cpu_seconds'] / 3600:.2f} h"]
-    table = markdown(["shape", "Chamfer", "Hausdorff", "held-out PSNR", f"points > {args.far} diag",
-                      "their albedo", "others' albedo", "points moved", "steps' wall / CPU"], [row])
+           f"{metrics['heldout_psnr']:.2f} dB",
+           f"{spread['far_share']:.0%} ({spread['inside_share']:.0%} / {spread['outside_share']:.0%})",
+           f"{spread['inside_albedo']:.2f} / {spread['outside_albedo']:.2f} / {spread['near_albedo']:.2f}",
+           sum(traj["moved"]), f"{metrics['train_seconds'] / 3600:.2f} h",
+           f"{metrics['train_cpu_seconds'] / 3600:.2f} h (steps {since + 1}–{steps})"]
+    table = markdown(["shape", "Chamfer", "Hausdorff", "held-out PSNR",
+                      f"points > {args.far} diag (inside / outside)", "albedo inside / outside / near",
+                      "points moved", "steps' wall", "steps' CPU"], [row])
     write_result(f"reconstruct-paper-{metrics['shape']}",
                  {"run": str(args.run), "metrics": metrics, "far": args.far, "spread": spread, "trajectory": traj},
                  table)
