@@ -1,6 +1,6 @@
 """The record of a reconstruction run at the paper's own setting (``configs/reconstruct_paper.yaml``).
 
-The run itself is a plain, resumable ``train.py`` run (about 4 hours on 2 CPU cores; it checkpoints every epoch):
+The run itself is a plain, resumable ``train.py`` run (about 3.5 hours on 2 CPU cores; it checkpoints every epoch):
 
     OMP_NUM_THREADS=2 python train.py --config configs/reconstruct_paper.yaml --run runs/paper/bunny
     python train.py --run runs/paper/bunny --resume            # after an interruption
@@ -9,8 +9,9 @@ The run itself is a plain, resumable ``train.py`` run (about 4 hours on 2 CPU co
 This script reads the finished run folder and writes ``benchmarks/results/reconstruct-paper-<shape>.json``: the run's
 ``metrics.json`` (distances, held-out PSNR, wall and CPU seconds over every segment), the validation trajectory and
 the points moved by each repositioning check (TensorBoard), and where the final points lie: the share farther than
-``--far`` of the GT's bounding-box diagonal from the GT, and the median albedo of those and of the rest (black
-floaters vanish against the black background, so the image loss leaves them where they are).
+``--far`` of the GT's bounding-box diagonal from the GT, split into points hidden inside the surface and floaters
+outside it, with the median albedo of each and of the near points (dark floaters vanish against the black
+background, so the image loss leaves them where they are).
 """
 from __future__ import annotations
 
