@@ -159,7 +159,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit code (0 success, 2 user error)."""
+    """Run the command line; returns the exit code (0 success, 2 user error, 130 training interrupted)."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")  # progress and logs: stderr
     report.to_stdout()  # results (the run folder, metrics lines): stdout
     argv = sys.argv[1:] if argv is None else argv
@@ -270,14 +270,19 @@ def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device:
             task.run(cfg, ctx)
         if main:
             mark_finished(args.run)
-    except USER_ERRORS:
+    except (KeyboardInterrupt, *USER_ERRORS) as exc:
         if main:
-            failed_start = fresh and not any(args.run.rglob("latest"))  # no checkpoint written yet
-            if failed_start:  # a failed start leaves no half-made run behind
+            resumable = any(args.run.rglob("latest"))  # a checkpoint was written
+            failed_start = fresh and not resumable
+            if failed_start:  # a failed or interrupted start leaves no half-made run behind
                 clear_run_folder(args.run)
             lock.release()
             if failed_start and created:
                 shutil.rmtree(args.run, ignore_errors=True)
+            if isinstance(exc, KeyboardInterrupt):
+                print(f"interrupted: continue from the last checkpoint with `{_prog()} --run {args.run} --resume`"
+                      if resumable else "interrupted before the first checkpoint: nothing to resume", file=sys.stderr)
+                return 130
         raise
     finally:
         if lock is not None:

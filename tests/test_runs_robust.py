@@ -206,6 +206,46 @@ def test_resume_of_a_finished_run_says_so_and_changes_nothing(tmp_path, capsys):
     assert (run / "metrics.json").is_file() and (run / "finished.json").is_file()
 
 
+def _interrupt_at_checkpoint(monkeypatch, at_step: int, after_saving: bool) -> None:
+    """Make the engine's checkpoint save at ``at_step`` raise ``KeyboardInterrupt`` (Ctrl-C), before or after
+    writing."""
+    import nsplat.engine as engine
+    original = engine.save_checkpoint
+
+    def save(run_dir, step, state, *args, **kwargs):
+        if step == at_step and not after_saving:
+            raise KeyboardInterrupt
+        path = original(run_dir, step, state, *args, **kwargs)
+        if step == at_step:
+            raise KeyboardInterrupt
+        return path
+    monkeypatch.setattr(engine, "save_checkpoint", save)
+
+
+def test_ctrl_c_after_a_checkpoint_exits_130_naming_the_resume_command_and_the_run_resumes(tmp_path, capsys,
+                                                                                        monkeypatch):
+    cfg = _tiny_reconstruct(tmp_path, epochs=3)
+    run = tmp_path / "run"
+    _interrupt_at_checkpoint(monkeypatch, at_step=2, after_saving=True)
+    code, err = run_cli(capsys, "--config", str(cfg), "--run", str(run))
+    line = err.splitlines()[-1]  # after the progress bars
+    assert code == 130 and "Traceback" not in err
+    assert line.startswith("interrupted:") and f"--run {run} --resume" in line
+    assert load_checkpoint(run)["step"] == 2 and not (run / "finished.json").exists()
+    monkeypatch.undo()
+    assert run_cli(capsys, "--resume", "--run", str(run))[0] == 0
+    assert (run / "finished.json").is_file() and load_checkpoint(run)["step"] == 3
+
+
+def test_ctrl_c_before_the_first_checkpoint_exits_130_and_leaves_no_run_folder(tmp_path, capsys, monkeypatch):
+    cfg = _tiny_reconstruct(tmp_path, epochs=3)
+    _interrupt_at_checkpoint(monkeypatch, at_step=1, after_saving=False)
+    code, err = run_cli(capsys, "--config", str(cfg), "--run", str(tmp_path / "run"))
+    assert code == 130 and "Traceback" not in err
+    assert err.splitlines()[-1] == "interrupted before the first checkpoint: nothing to resume"
+    assert not (tmp_path / "run").exists()
+
+
 # --------------------------------------------------------------- 8. user errors: one line, exit 2, no run
 @pytest.mark.parametrize("override,key", [("resolution=0", "resolution"), ("views=0", "views"),
                                           ("points=0", "points"), ("points=-5", "points"),
