@@ -1,5 +1,6 @@
 """``nsplat data fetch|prepare`` against a local HTTP server on 127.0.0.1: a full fetch that the loaders read,
-resume after a cut-off download, checksum mismatch, full disk, and the command line's one-line errors."""
+resume after a cut-off download, checksum mismatch, full disk, the command line's one-line errors, and a TUM RGB-D
+sequence (.tgz) with the archives it must refuse."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 import threading
 import zipfile
 from pathlib import Path
@@ -70,6 +72,46 @@ def _ply(n: int) -> bytes:
     v["nz"] = 1.0
     buf = io.BytesIO()
     PlyData([PlyElement.describe(v, "vertex")]).write(buf)
+    return buf.getvalue()
+
+
+TUM = "rgbd_dataset_freiburg1_rpy"  # the folder in tum_fr1_rpy's archive
+
+
+def _tum_files(folder: str = TUM) -> dict[str, bytes | None]:
+    """The members of a TUM RGB-D sequence archive (``None``: a folder): three 8×6 colour and three 16-bit depth
+    frames at their own timestamps, the lists naming them, ground truth and accelerometer data."""
+    rng = np.random.default_rng(5)
+    files: dict[str, bytes | None] = {"": None, "rgb": None, "depth": None}
+    lists = {"rgb": ["# color images", "# timestamp filename"], "depth": ["# depth maps", "# timestamp filename"]}
+    for i in range(3):
+        for kind, img in (("rgb", rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)),
+                          ("depth", rng.integers(0, 1 << 16, (6, 8), dtype=np.uint16))):
+            stamp = f"{1305031790.6 + i / 30 + (0.01 if kind == 'depth' else 0.0):.6f}"
+            files[f"{kind}/{stamp}.png"] = iio.imwrite("<bytes>", img, extension=".png")
+            lists[kind].append(f"{stamp} {kind}/{stamp}.png")
+    for kind, lines in lists.items():
+        files[f"{kind}.txt"] = "\n".join([*lines, ""]).encode()
+    files["groundtruth.txt"] = b"# timestamp tx ty tz qx qy qz qw\n1305031790.6 1.2 -0.3 1.5 0.6 0.6 -0.3 -0.3\n"
+    files["accelerometer.txt"] = b"# timestamp ax ay az\n1305031790.6 0.1 -9.7 -0.6\n"
+    return {f"{folder}/{name}".rstrip("/"): data for name, data in files.items()}
+
+
+def _tgz(members: dict[str, bytes | None], symlinks: dict[str, str] | None = None) -> bytes:
+    """A gzip-compressed tar of ``members`` (name: bytes, or ``None`` for a folder) and ``symlinks`` (name: target)."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tf:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            if data is None:
+                info.type, info.mode = tarfile.DIRTYPE, 0o755
+            else:
+                info.size = len(data)
+            tf.addfile(info, None if data is None else io.BytesIO(data))
+        for name, target in (symlinks or {}).items():
+            info = tarfile.TarInfo(name)
+            info.type, info.linkname = tarfile.SYMTYPE, target
+            tf.addfile(info)
     return buf.getvalue()
 
 
@@ -253,6 +295,8 @@ def test_dss_fetch_prints_the_destination_and_loads(server, tmp_path, capsys):
     (["prepare", "lego"], "usage error: nsplat data prepare: the following arguments are required: --resolution"),
     (["prepare", "lego", "--resolution", "4"], "error: no scene at"),
     (["fetch", "lego", "--archive", "missing.zip"], "error: --archive missing.zip: no such file"),
+    (["fetch", "dss", "--archive", "x.tgz"], "usage error: --archive applies to one dataset published as an archive"),
+    (["fetch", "lego", "tum_fr1_rpy", "--sha256", "0" * 64], "usage error: --sha256 applies to one dataset"),
 ])
 def test_usage_and_missing_input_are_one_line(argv, message, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["nsplat"])
@@ -298,3 +342,89 @@ def test_data_root_defaults_to_the_user_data_folder(tmp_path, monkeypatch):
     assert resolve("$NSPLAT_DATA/dss_pointclouds") == data_root() / "dss_pointclouds"
     monkeypatch.setenv("NSPLAT_DATA", str(tmp_path / "d"))
     assert data_root() == tmp_path / "d" and resolve("configs") == REPO / "configs"
+
+
+@pytest.mark.parametrize("name, camera, sequence", [
+    ("tum_fr1_rpy", 1, "rpy"), ("tum_fr1_desk", 1, "desk"), ("tum_fr1_xyz", 1, "xyz"), ("tum_fr1_room", 1, "room"),
+    ("tum_fr2_xyz", 2, "xyz"), ("tum_fr3_long_office_household", 3, "long_office_household"),
+])
+def test_tum_sequences_follow_the_published_url_scheme(name, camera, sequence):
+    folder = f"rgbd_dataset_freiburg{camera}_{sequence}"
+    ds = fetch_mod.DATASETS[name]
+    assert ds.dest == f"rgbd/{folder}" and ds.scene == folder and ds.layout == "tum"
+    assert [(r.name, r.url, r.sha256) for r in ds.files] == [
+        (f"{folder}.tgz", f"https://cvg.cit.tum.de/rgbd/dataset/freiburg{camera}/{folder}.tgz", None)]
+
+
+def test_fetch_tum_sequence_resumes_verifies_and_records_its_source(server, tmp_path, capsys):
+    root, tgz = tmp_path / "data", _tgz(_tum_files())
+    server.files[f"{TUM}.tgz"] = tgz
+    server.cut[f"{TUM}.tgz"] = len(tgz) // 3
+    code, _, err = _run(capsys, "fetch", "tum_fr1_rpy", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 2 and len(err) == 1 and "resume" in err[0]
+    code, out, err = _run(capsys, "fetch", "tum_fr1_rpy", "--root", str(root), "--mirror", server.url, "--quiet")
+    dest = root / "rgbd" / TUM
+    assert code == 0 and err == [] and f"tum_fr1_rpy: fetched into {dest}" in out
+    assert f"sha256 {_sha(tgz)}" in out and "no checksum is published" in out and "gzip CRC-32" in out
+    assert server.requests == [(f"{TUM}.tgz", None), (f"{TUM}.tgz", f"bytes={len(tgz) // 3}-")]
+    assert [p.name for p in (root / "rgbd").iterdir()] == [TUM]  # no .part left
+    assert sorted(p.name for p in dest.iterdir()) == ["SOURCE.json", "accelerometer.txt", "depth", "depth.txt",
+                                                      "groundtruth.txt", "rgb", "rgb.txt"]
+    for name, data in _tum_files().items():
+        if data is not None:
+            assert (root / "rgbd" / name).read_bytes() == data
+    depth = sorted((dest / "depth").iterdir())
+    assert len(depth) == 3 and iio.imread(depth[0]).dtype == np.uint16
+    assert json.loads((dest / "SOURCE.json").read_text()) == {"dataset": "tum_fr1_rpy", "files": [{
+        "file": f"{TUM}.tgz", "url": f"https://cvg.cit.tum.de/rgbd/dataset/freiburg1/{TUM}.tgz",
+        "sha256": _sha(tgz), "bytes": len(tgz), "checksum": "none published"}]}
+    code, out, _ = _run(capsys, "fetch", "tum_fr1_rpy", "--root", str(root), "--mirror", server.url)
+    assert code == 0 and f"tum_fr1_rpy: already in {dest}" in out and len(server.requests) == 2
+
+
+def test_tum_archive_downloaded_by_hand(tmp_path, capsys):
+    folder = "rgbd_dataset_freiburg1_desk"
+    archive = tmp_path / f"{folder}.tgz"
+    archive.write_bytes(_tgz(_tum_files(folder)))
+    code, out, err = _run(capsys, "fetch", "tum_fr1_desk", "--root", str(tmp_path / "d"), "--archive", str(archive),
+                          "--sha256", _sha(archive.read_bytes()))
+    dest = tmp_path / "d" / "rgbd" / folder
+    assert code == 0 and err == [] and f"tum_fr1_desk: fetched into {dest}" in out and "no checksum" not in out
+    assert json.loads((dest / "SOURCE.json").read_text())["files"][0]["url"] == str(archive) and archive.is_file()
+    done = fetch_mod.fetch("tum_fr1_desk", tmp_path / "d", archive=archive, progress=False)
+    assert done.already and done.dest == dest
+
+
+def _flip(data: bytes) -> bytes:
+    """``data`` with one byte in the middle of the compressed stream changed."""
+    mid = len(data) // 2
+    return data[:mid] + bytes([data[mid] ^ 0x55]) + data[mid + 1:]
+
+
+def _without(name: str) -> dict[str, bytes | None]:
+    files = _tum_files()
+    del files[f"{TUM}/{name}"]
+    return files
+
+
+@pytest.mark.parametrize("archive, message", [
+    (_tgz(_tum_files())[:-100], "corrupt archive"),
+    (_flip(_tgz(_tum_files())), "corrupt archive"),
+    (b"PK\x03\x04 not a tgz" * 10, "not a readable .tgz (gzip-compressed tar) archive"),
+    (_tgz(_tum_files("rgbd_dataset_freiburg1_xyz")), f"no {TUM}/ folder in the archive"),
+    (_tgz(_without(f"rgb/{1305031790.6 + 1 / 30:.6f}.png")), f"rgb.txt names rgb/{1305031790.6 + 1 / 30:.6f}.png, "
+                                                             f"which is missing"),
+    (_tgz(_without("depth.txt")), "no readable depth.txt"),
+    (_tgz(_without("groundtruth.txt")), "no groundtruth.txt"),
+    (_tgz({**_tum_files(), "../evil": b"x"}), "unsafe member name '../evil'"),
+    (_tgz({**_tum_files(), f"{TUM}/../../evil": b"x"}), f"unsafe member name '{TUM}/../../evil'"),
+    (_tgz({**_tum_files(), "/tmp/evil": b"x"}), "unsafe member name '/tmp/evil'"),
+    (_tgz(_tum_files(), {f"{TUM}/rgb/evil.png": "/etc/passwd"}), "is neither a file nor a folder"),
+], ids=["truncated", "flipped-byte", "not-a-tgz", "other-folder", "missing-frame", "no-depth-list", "no-groundtruth",
+        "dotdot", "inner-dotdot", "absolute", "symlink"])
+def test_bad_tum_archives_are_one_line_and_leave_nothing(archive, message, server, tmp_path, capsys):
+    root = tmp_path / "data"
+    server.files[f"{TUM}.tgz"] = archive
+    code, _, err = _run(capsys, "fetch", "tum_fr1_rpy", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
+    assert _files(root) == [] and not list(tmp_path.rglob("evil*"))

@@ -4,6 +4,7 @@ Usage::
 
     nsplat data fetch lego --resolution 400     # NeRF-synthetic lego, plus the 400² copy configs/lego.yaml uses
     nsplat data fetch dss                       # the four DSS point clouds (configs/reconstruct_*.yaml)
+    nsplat data fetch tum_fr1_rpy               # a TUM RGB-D sequence, into rgbd/rgbd_dataset_freiburg1_rpy
     nsplat data prepare lego --resolution 200   # another downscale of a fetched lego
     nsplat data fetch lego --archive ~/Downloads/nerf_synthetic.zip   # a copy downloaded by hand
 
@@ -18,12 +19,14 @@ import os
 import sys
 from pathlib import Path
 
-from nsplat.data.fetch import DATASETS, FetchError, fetch
+from nsplat.data.fetch import DATASETS, LAYOUTS, FetchError, fetch
 from nsplat.data.paths import data_root
 from nsplat.data.prepare import prepare
 
 #: Environment variable that replaces the published base URLs (like ``--mirror``).
 MIRROR_ENV = "NSPLAT_DATA_MIRROR"
+#: The datasets published as one archive, to which --sha256 and --archive apply.
+ARCHIVED = frozenset(name for name, ds in DATASETS.items() if ds.scene is not None)
 
 
 class UsageError(Exception):
@@ -48,9 +51,10 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     f.add_argument("--mirror", default=os.environ.get(MIRROR_ENV) or None, metavar="URL",
                    help=f"fetch every file as URL/<file name> instead of from its published source "
                         f"(default: ${MIRROR_ENV})")
-    f.add_argument("--sha256", default=None, metavar="HEX", help="lego: require this sha256 of nerf_synthetic.zip")
+    f.add_argument("--sha256", default=None, metavar="HEX",
+                   help="lego, tum_*: require this sha256 of the archive (nerf_synthetic.zip, <sequence>.tgz)")
     f.add_argument("--archive", type=Path, default=None, metavar="FILE",
-                   help="lego: use this nerf_synthetic.zip (downloaded by hand) instead of downloading")
+                   help="lego, tum_*: use this archive (downloaded by hand) instead of downloading")
     pr = sub.add_parser("prepare", help="write a downscaled copy of a fetched NeRF-synthetic scene")
     pr.add_argument("scene", choices=["lego"], help="the fetched scene")
     pr.add_argument("--resolution", type=int, required=True, metavar="N", help="output width in pixels")
@@ -67,10 +71,12 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError(f"--resolution: expected a positive number of pixels, got {args.resolution}")
     if args.action != "fetch":
         return
-    if "lego" not in args.datasets:
-        for flag in ("resolution", "sha256", "archive"):
-            if getattr(args, flag) is not None:
-                raise UsageError(f"--{flag} applies to lego only")
+    if args.resolution is not None and "lego" not in args.datasets:
+        raise UsageError("--resolution applies to lego only")
+    for flag in ("sha256", "archive"):
+        if getattr(args, flag) is not None and len(ARCHIVED.intersection(args.datasets)) != 1:
+            raise UsageError(f"--{flag} applies to one dataset published as an archive (lego or a tum_* sequence); "
+                             f"name exactly one such dataset")
     if args.sha256 is not None and (len(args.sha256) != 64 or any(c not in "0123456789abcdefABCDEF"
                                                                   for c in args.sha256)):
         raise UsageError(f"--sha256: expected 64 hexadecimal digits, got {args.sha256!r}")
@@ -78,19 +84,19 @@ def _check(args: argparse.Namespace) -> None:
 
 def _fetch(args: argparse.Namespace, root: Path) -> None:
     for name in dict.fromkeys(args.datasets):
-        lego = name == "lego"
+        lego, archived = name == "lego", name in ARCHIVED
         if lego and args.resolution is not None:
             scaled = root / f"{DATASETS[name].dest}_{args.resolution}"
             if scaled.is_dir():  # the copy the configs read is there; the originals are not needed
                 print(f"{name}_{args.resolution}: already in {scaled}")
                 continue
-        done = fetch(name, root, mirror=args.mirror, sha256=args.sha256 if lego else None,
-                     archive=args.archive if lego else None, progress=not args.quiet)
+        done = fetch(name, root, mirror=args.mirror, sha256=args.sha256 if archived else None,
+                     archive=args.archive if archived else None, progress=not args.quiet)
         print(f"{name}: {'already in' if done.already else 'fetched into'} {done.dest}")
         for rec in done.files:
             if rec["checksum"] != "verified":
                 print(f"  {rec['file']}: sha256 {rec['sha256']} ({rec['bytes']} bytes); no checksum is published for "
-                      f"it, so only its zip CRC-32s and the scene's files were checked (--sha256 {rec['sha256']} "
+                      f"it, so only {LAYOUTS[DATASETS[name].layout].verified} were checked (--sha256 {rec['sha256']} "
                       f"requires this file next time)")
         if lego and args.resolution is not None:
             _prepare(done.dest, args.resolution, not args.quiet)

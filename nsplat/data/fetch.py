@@ -1,4 +1,4 @@
-"""Download the public datasets into the data root (``nsplat data fetch lego|dss``; docs/data.md).
+"""Download the public datasets into the data root (``nsplat data fetch lego|dss|tum_*``; docs/data.md).
 
 Each dataset is built in a sibling folder ``<dest>.part`` and renamed into place when complete, so the
 destination either holds the whole dataset or does not exist. Downloads go to ``<name>.part`` inside that
@@ -9,21 +9,30 @@ disk) removes the partial folder and reports one line (:class:`FetchError`).
 Checksums: the DSS point clouds are pinned to the sha256 of the published files. The NeRF authors publish
 no checksum for ``nerf_synthetic.zip``: it is verified by the zip's own CRC-32 of every extracted file and
 by the scene's structure (every frame named in the transforms is present); its sha256 is printed and
-recorded in ``<dest>/SOURCE.json``, and ``--sha256`` requires a known value.
+recorded in ``<dest>/SOURCE.json``, and ``--sha256`` requires a known value. The same holds for the TUM RGB-D
+sequences (``.tgz``), which are verified by gzip's CRC-32 of the whole archive and by the sequence's
+structure (every image named in ``rgb.txt`` and ``depth.txt`` is present, and ``groundtruth.txt``).
 """
 from __future__ import annotations
 
+import contextlib
+import copy
 import dataclasses
 import errno
+import gzip
 import hashlib
 import http.client
 import json
 import os
 import shutil
+import tarfile
 import urllib.error
 import urllib.request
 import zipfile
+import zlib
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
+from typing import Literal
 
 from tqdm import tqdm
 
@@ -40,6 +49,20 @@ DSS_RAW = f"https://raw.githubusercontent.com/yifita/DSS/{DSS_COMMIT}/example_da
 NERF_FOLDER = "https://drive.google.com/drive/folders/128yBriW1IG_3NJ5Rp7APSTZsJqdJdfc1"
 NERF_ZIP = ("https://drive.usercontent.google.com/download?id=18JxhpWD-4ZmuFKLzKlAw-w5PpzZxXOcG"
             "&export=download&confirm=t")
+#: The TUM RGB-D benchmark (Sturm et al., IROS 2012): its archives, and the page that links them.
+TUM_BASE = "https://cvg.cit.tum.de/rgbd/dataset"
+TUM_DOWNLOAD = "https://cvg.cit.tum.de/data/datasets/rgbd-dataset/download"
+#: The TUM RGB-D sequences offered, by camera (``freiburg1``-``3``); dataset ``tum_fr<camera>_<sequence>``.
+TUM_SEQUENCES: dict[int, tuple[str, ...]] = {
+    1: ("xyz", "rpy", "360", "floor", "desk", "desk2", "room"),
+    2: ("xyz", "rpy", "desk"),
+    3: ("long_office_household",),
+}
+#: The lists of a TUM RGB-D sequence that name its images (lines ``timestamp filename``, ``#`` comments).
+TUM_LISTS = ("rgb.txt", "depth.txt")
+#: PEP 706's extraction filter where this Python has it (3.12, 3.11.4, 3.10.12): besides the member checks
+#: of :func:`extract_sequence`, it refuses any member that would land outside the destination.
+TAR_FILTER: dict[str, str] = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}
 
 
 class FetchError(DataError):
@@ -71,12 +94,23 @@ class Dataset:
         dest: destination relative to the data root. files: the published files.
         scene: the folder extracted from the (single) archive; ``None``: the files are the dataset.
         manual: what to do when the source does not deliver (where to download the files by hand).
+        layout: how the archive is unpacked and checked (:data:`LAYOUTS`); unused when ``scene`` is ``None``.
     """
 
     dest: str
     files: tuple[Remote, ...]
     scene: str | None
     manual: str
+    layout: Literal["nerf", "tum"] = "nerf"
+
+
+def tum_dataset(camera: int, sequence: str) -> Dataset:
+    """TUM RGB-D sequence ``rgbd_dataset_freiburg<camera>_<sequence>``: its archive, unpacked into
+    ``rgbd/<the archive's folder>``."""
+    folder = f"rgbd_dataset_freiburg{camera}_{sequence}"
+    archive = Remote(f"{folder}.tgz", f"{TUM_BASE}/freiburg{camera}/{folder}.tgz", None)
+    return Dataset(f"rgbd/{folder}", (archive,), folder,
+                   f"download {archive.name} by hand from {TUM_DOWNLOAD} and pass --archive FILE", "tum")
 
 
 DATASETS: dict[str, Dataset] = {
@@ -88,6 +122,8 @@ DATASETS: dict[str, Dataset] = {
         ("yoga1_out.ply", "99721808e5560192200693efe2ddc1324f0d00e8b75b9824f19dd07f01c29202"),
         ("yoga6_out.ply", "d14e8cb48c1ec795b19452a5bb603d4884e753646f8219b0441af24f7b378ec5"),
     )), None, f"the files are published at https://github.com/yifita/DSS/tree/{DSS_COMMIT}/example_data/pointclouds"),
+    **{f"tum_fr{camera}_{sequence}": tum_dataset(camera, sequence)
+       for camera, sequences in TUM_SEQUENCES.items() for sequence in sequences},
 }
 
 
@@ -246,12 +282,95 @@ def check_scene(folder: Path, what: str) -> None:
             raise FetchError(f"{what}: the transforms name {rel}, which is missing")
 
 
+def extract_sequence(archive: Path, scene: str, out: Path, *, progress: bool = True) -> None:
+    """Extract the top folder ``scene/`` of a gzip-compressed tar archive into ``out``; a failed write raises its
+    ``OSError``.
+
+    Any member with an absolute name or ``..`` is refused, as is a link or device file in ``scene/``; members
+    outside ``scene/`` are skipped. The archive is read once, to its end, so that gzip checks the CRC-32 of
+    every byte.
+    """
+    bad = (tarfile.TarError, gzip.BadGzipFile, EOFError, zlib.error)
+    found = False
+    with contextlib.ExitStack() as stack:
+        try:
+            gz = stack.enter_context(gzip.open(archive))
+            tf = stack.enter_context(tarfile.open(fileobj=gz, mode="r|"))
+        except (OSError, *bad) as exc:
+            raise FetchError(f"{archive}: not a readable .tgz (gzip-compressed tar) archive ({exc})") from None
+        try:
+            for member in tqdm(tf, desc=f"extract {scene}", unit="file", disable=None if progress else True,
+                               leave=False):
+                rel = PurePosixPath(member.name)
+                if rel.is_absolute() or ".." in rel.parts:
+                    raise FetchError(f"{archive.name}: unsafe member name {member.name!r}")
+                if rel.parts[:1] != (scene,):
+                    continue
+                found = True
+                if not (member.isfile() or member.isdir()):
+                    raise FetchError(f"{archive.name}: {member.name!r} is neither a file nor a folder")
+                if len(rel.parts) > 1:
+                    item = copy.copy(member)
+                    item.name = str(PurePosixPath(*rel.parts[1:]))
+                    tf.extract(item, out, set_attrs=False, **TAR_FILTER)
+            while gz.read(CHUNK):  # the rest, up to gzip's CRC-32 and length, checked at the end
+                pass
+        except bad as exc:
+            raise FetchError(f"{archive.name}: corrupt archive ({type(exc).__name__}: {exc})") from None
+    if not found:
+        raise FetchError(f"{archive.name}: no {scene}/ folder in the archive (not the TUM RGB-D archive of "
+                         f"this sequence?)")
+
+
+def check_sequence(folder: Path, what: str) -> None:
+    """``groundtruth.txt``, ``rgb.txt`` and ``depth.txt`` exist in ``folder`` and so does every image these two
+    name (lines ``timestamp filename``, ``#`` comments)."""
+    for listing in TUM_LISTS:
+        try:
+            lines = (folder / listing).read_text(encoding="utf-8").splitlines()
+        except (OSError, ValueError) as exc:
+            raise FetchError(f"{what}: no readable {listing} ({type(exc).__name__})") from None
+        frames = 0
+        for number, line in enumerate(lines, 1):
+            fields = line.split()
+            if not fields or fields[0].startswith("#"):
+                continue
+            rel = PurePosixPath(fields[-1])
+            if len(fields) != 2 or rel.is_absolute() or ".." in rel.parts:
+                raise FetchError(f"{what}: {listing} line {number} is not 'timestamp filename' of a file in the "
+                                 f"sequence: {line.strip()!r}")
+            if not folder.joinpath(*rel.parts).is_file():
+                raise FetchError(f"{what}: {listing} names {rel}, which is missing")
+            frames += 1
+        if not frames:
+            raise FetchError(f"{what}: {listing} names no images")
+    if not (folder / "groundtruth.txt").is_file():
+        raise FetchError(f"{what}: no groundtruth.txt")
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """How a dataset's archive is unpacked (``extract(archive, scene, out, progress=...)``) and its folder
+    checked (``check(folder, what)``), and what that verifies of an archive without a published checksum."""
+
+    extract: Callable[..., None]
+    check: Callable[[Path, str], None]
+    verified: str
+
+
+#: The layouts of :attr:`Dataset.layout`.
+LAYOUTS: dict[str, Layout] = {
+    "nerf": Layout(extract_scene, check_scene, "its zip CRC-32s and the scene's files"),
+    "tum": Layout(extract_sequence, check_sequence, "its gzip CRC-32 and the sequence's files"),
+}
+
+
 def present(ds: Dataset, dest: Path) -> bool:
     """Whether ``dest`` already holds the dataset; a folder that holds something else is an error."""
     if not dest.exists():
         return False
     if ds.scene is not None:
-        check_scene(dest, str(dest))
+        LAYOUTS[ds.layout].check(dest, str(dest))
         return True
     for remote in ds.files:
         path = dest / remote.name
@@ -298,8 +417,9 @@ def _build(name: str, ds: Dataset, stage: Path, tree: Path, *, mirror: str | Non
         for remote, path in zip(ds.files, paths):
             os.replace(path, tree / remote.name)
     else:
-        extract_scene(paths[0], ds.scene, tree, progress=progress)
-        check_scene(tree, f"{ds.files[0].name}: {ds.scene}/")
+        layout = LAYOUTS[ds.layout]
+        layout.extract(paths[0], ds.scene, tree, progress=progress)
+        layout.check(tree, f"{ds.files[0].name}: {ds.scene}/")
     (tree / "SOURCE.json").write_text(json.dumps({"dataset": name, "files": records}, indent=1) + "\n")
     return records
 
