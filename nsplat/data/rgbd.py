@@ -1,0 +1,478 @@
+"""Real RGB-D sequences with a camera trajectory: the TUM RGB-D layout and the pose-file folder layout.
+
+Two layouts are read (docs/data.md, "RGB-D sequences"):
+
+* **TUM RGB-D** (Sturm et al., IROS 2012): ``rgb.txt`` and ``depth.txt`` list ``timestamp filename``; a
+  trajectory file lists ``timestamp tx ty tz qx qy qz qw`` (camera → world, Hamilton quaternion, scalar last).
+  RGB and depth frames are paired by nearest timestamp within ``max_dt`` seconds, and each pair with the
+  trajectory (and the ground truth, when given) the same way, as the benchmark's ``associate.py`` pairs
+  them: the candidate pairs closest in time are taken first, each stamp used once.
+* **A folder of frames** with one pose file per frame (the 7-Scenes / tsdf-fusion layout):
+  ``<frame>.color.png`` (or ``.jpg``), ``<frame>.depth.png`` and ``<frame>.pose.txt`` (a 4×4 camera → world
+  matrix), and an intrinsics file (``camera-intrinsics.txt``: the 3×3 matrix) unless the config names the
+  intrinsics.
+
+Intrinsics come from the config (``fx fy cx cy`` in OpenCV's pixel convention, centres at integers, with
+OpenCV distortion ``k1 k2 p1 p2 k3``) or from one of the three TUM camera presets (:data:`TUM_CAMERAS`). The
+photos are undistorted to the pinhole camera with the same ``fx fy cx cy`` (pycolmap's ``FULL_OPENCV`` model,
+as :mod:`nsplat.data.undistort` does for captures): colour bilinearly, depth by the nearest sample (never mixing
+two surfaces' depths); target pixels whose ray leaves the photo are invalid. ``downscale`` then averages
+``d×d`` blocks (depth: the mean of a block whose valid readings agree within 2 %, else invalid). The returned
+intrinsics follow the library's convention (pixel centres at half-integers, :mod:`nsplat.cameras`).
+
+Depth PNGs hold ``metres × depth_scale`` (5000 for TUM, 1000 for millimetres); 0 (and readings outside
+``[depth_min, depth_max]``) are invalid. Every check that can fail runs before any image is decoded, and
+fails with one line naming the file and what was expected (:class:`~nsplat.errors.DataError`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Sequence
+
+import imageio.v3 as iio
+import numpy as np
+import pycolmap
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from nsplat.data.undistort import source_positions
+from nsplat.errors import DataError
+
+#: TUM RGB-D camera presets (the benchmark's documented calibration of each Kinect's RGB camera):
+#: ``(fx, fy, cx, cy)`` in OpenCV's pixel convention and distortion ``(k1, k2, p1, p2, k3)``.
+TUM_CAMERAS: dict[str, tuple[tuple[float, float, float, float], tuple[float, ...]]] = {
+    "fr1": ((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "fr2": ((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "fr3": ((535.4, 539.2, 320.1, 247.6), (0.0, 0.0, 0.0, 0.0, 0.0)),
+}
+#: Fewest frames a sequence must pair with its trajectory.
+MIN_FRAMES = 3
+#: Median valid depth (metres) outside which a depth scale is taken for a wrong one.
+PLAUSIBLE_DEPTH = (0.05, 50.0)
+#: Valid depth readings of a downscaled block must agree within this relative spread.
+BLOCK_AGREE = 0.02
+
+
+@dataclasses.dataclass
+class RGBDSequence:
+    """``B`` RGB-D frames with their trajectory.
+
+    Attributes:
+        images: ``[B,H,W,3]`` float32 in [0, 1] (undistorted, downscaled).
+        depths: ``[B,H,W]`` float32 metres, 0 where invalid.
+        valid: ``[B,H,W]`` bool, pixels inside the undistorted photo.
+        Ks: ``[B,3,3]`` float32 pinhole intrinsics (pixel centres at half-integers).
+        c2w: ``[B,4,4]`` float64 camera → world poses of the trajectory (OpenCV camera axes).
+        c2w_gt: ``[B,4,4]`` float64 ground-truth poses in their own world frame, or ``None``.
+        timestamps: ``[B]`` float64 seconds (the RGB frames'; the frame index for the folder layout).
+        names: frame names (the RGB file's stem).
+    """
+
+    images: torch.Tensor
+    depths: torch.Tensor
+    valid: torch.Tensor
+    Ks: torch.Tensor
+    c2w: torch.Tensor
+    c2w_gt: torch.Tensor | None
+    timestamps: torch.Tensor
+    names: list[str]
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    def subset(self, index: Sequence[int]) -> "RGBDSequence":
+        """The frames ``index`` in that order."""
+        idx = torch.as_tensor(list(index), dtype=torch.long)
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for k, v in out.items():
+            if isinstance(v, torch.Tensor):
+                out[k] = v[idx]
+        out["names"] = [self.names[i] for i in idx.tolist()]
+        return RGBDSequence(**out)
+
+
+@dataclasses.dataclass
+class Camera:
+    """Pinhole intrinsics ``(fx, fy, cx, cy)`` in OpenCV's convention and distortion ``(k1, k2, p1, p2, k3)``."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def colmap(self, width: int, height: int, distorted: bool = True) -> pycolmap.Camera:
+        """The pycolmap camera (COLMAP's pixel centres at half-integers: ``cx + 0.5``)."""
+        k1, k2, p1, p2, k3 = self.distortion
+        base = [self.fx, self.fy, self.cx + 0.5, self.cy + 0.5]
+        if distorted:
+            return pycolmap.Camera(model="FULL_OPENCV", width=width, height=height,
+                                   params=base + [k1, k2, p1, p2, k3, 0.0, 0.0, 0.0])
+        return pycolmap.Camera(model="PINHOLE", width=width, height=height, params=base)
+
+    @property
+    def distorted(self) -> bool:
+        return any(abs(k) > 0 for k in self.distortion)
+
+
+def camera_of(preset: str, intrinsics: Sequence[float], distortion: Sequence[float]) -> Camera:
+    """The camera from a TUM preset name (``fr1``, ``fr2``, ``fr3``) or from explicit values."""
+    if intrinsics:
+        if len(intrinsics) != 4 or any(not math.isfinite(v) for v in intrinsics) or min(intrinsics[:2]) <= 0:
+            raise DataError(f"intrinsics: expected [fx, fy, cx, cy] with fx, fy > 0, got {list(intrinsics)}")
+        dist = tuple(float(v) for v in distortion) if distortion else (0.0,) * 5
+        if len(dist) != 5:
+            raise DataError(f"distortion: expected [k1, k2, p1, p2, k3], got {list(distortion)}")
+        return Camera(*[float(v) for v in intrinsics], distortion=dist)
+    if preset not in TUM_CAMERAS:
+        raise DataError(f"camera: expected one of {sorted(TUM_CAMERAS)} or explicit intrinsics, got {preset!r}")
+    (fx, fy, cx, cy), dist = TUM_CAMERAS[preset]
+    return Camera(fx, fy, cx, cy, dist)
+
+
+# ---------------------------------------------------------------------------------------------- text files
+def _rows(path: Path, columns: int, what: str) -> list[list[str]]:
+    """Whitespace-separated rows of ``path`` (``#`` comments and blank lines skipped), each ``columns`` wide."""
+    if not path.is_file():
+        raise DataError(f"{path}: no such {what} file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read the {what} file: {exc}") from None
+    rows = []
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != columns:
+            raise DataError(f"{path}:{n}: expected {columns} values on a {what} line, got {len(parts)}: {line!r}")
+        rows.append(parts)
+    if not rows:
+        raise DataError(f"{path}: the {what} file lists nothing")
+    return rows
+
+
+def _floats(path: Path, row: list[str], n: int) -> list[float]:
+    try:
+        vals = [float(v) for v in row]
+    except ValueError:
+        raise DataError(f"{path}: line {n} of the file: expected numbers, got {' '.join(row)!r}") from None
+    if not all(math.isfinite(v) for v in vals):
+        raise DataError(f"{path}: line {n} of the file has a NaN or Inf value")
+    return vals
+
+
+def read_file_list(path: str | Path) -> tuple[np.ndarray, list[str]]:
+    """A TUM ``rgb.txt`` / ``depth.txt``: ``(timestamps [n] float64, file names relative to its folder)``."""
+    path = Path(path)
+    rows = _rows(path, 2, "frame list")
+    stamps = np.array([_floats(path, [r[0]], n)[0] for n, r in enumerate(rows, 1)])
+    return stamps, [r[1] for r in rows]
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions ``[n,4]`` ``(qx, qy, qz, qw)`` → rotation matrices ``[n,3,3]`` (normalised first)."""
+    q = q / q.norm(dim=-1, keepdim=True)
+    x, y, z, w = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+
+
+def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``[n,3,3]`` → unit quaternions ``[n,4]`` ``(qx, qy, qz, qw)`` with ``qw >= 0``."""
+    R = R.double()
+    m = R.reshape(-1, 9)
+    diag = torch.stack([1 + m[:, 0] - m[:, 4] - m[:, 8], 1 - m[:, 0] + m[:, 4] - m[:, 8],
+                        1 - m[:, 0] - m[:, 4] + m[:, 8], 1 + m[:, 0] + m[:, 4] + m[:, 8]], -1)
+    k = diag.argmax(-1)  # the largest component, computed without cancellation
+    out = torch.empty(m.shape[0], 4, dtype=R.dtype)
+    for i in range(m.shape[0]):
+        r = R[i]
+        s = 2.0 * math.sqrt(max(float(diag[i, k[i]]), 1e-300))
+        if k[i] == 3:
+            q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+        elif k[i] == 0:
+            q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+        elif k[i] == 1:
+            q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+        else:
+            q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
+        out[i] = torch.tensor([float(v) for v in q], dtype=R.dtype)
+    out = out / out.norm(dim=-1, keepdim=True)
+    return torch.where(out[:, 3:] < 0, -out, out)
+
+
+def read_trajectory(path: str | Path) -> tuple[np.ndarray, torch.Tensor]:
+    """A TUM trajectory file: ``(timestamps [n] float64, camera → world poses [n,4,4] float64)``."""
+    path = Path(path)
+    rows = _rows(path, 8, "trajectory")
+    vals = torch.tensor([_floats(path, r, n) for n, r in enumerate(rows, 1)], dtype=torch.float64)
+    qn = vals[:, 4:].norm(dim=-1)
+    bad = (qn - 1.0).abs() > 1e-2
+    if bool(bad.any()):
+        n = int(torch.nonzero(bad)[0])
+        raise DataError(f"{path}: pose {n + 1} has a quaternion of norm {float(qn[n]):.4f}, expected a unit "
+                        f"quaternion (qx qy qz qw)")
+    T = torch.eye(4, dtype=torch.float64).repeat(len(rows), 1, 1)
+    T[:, :3, :3] = quat_to_matrix(vals[:, 4:])
+    T[:, :3, 3] = vals[:, 1:4]
+    return vals[:, 0].numpy(), T
+
+
+def write_trajectory(path: str | Path, timestamps: Sequence[float] | np.ndarray, c2w: torch.Tensor,
+                     comment: str = "") -> Path:
+    """Write camera → world poses ``c2w [n,4,4]`` as a TUM trajectory file (``timestamp tx ty tz qx qy qz qw``)."""
+    path = Path(path)
+    q = matrix_to_quat(c2w[:, :3, :3].detach().cpu())
+    t = c2w[:, :3, 3].detach().cpu().double()
+    lines = [f"# {comment}"] if comment else []
+    lines.append("# timestamp tx ty tz qx qy qz qw")
+    for s, ti, qi in zip(np.asarray(timestamps, dtype=np.float64), t.tolist(), q.tolist()):
+        lines.append(f"{s:.6f} " + " ".join(f"{v:.9f}" for v in ti + qi))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def associate(first: np.ndarray, second: np.ndarray, max_dt: float, offset: float = 0.0) -> list[tuple[int, int]]:
+    """Pair stamps of ``first`` with stamps of ``second + offset`` whose difference is below ``max_dt`` seconds.
+
+    The candidate pairs are taken closest first and each stamp at most once (the TUM benchmark's
+    ``associate.py``); returns ``(i, j)`` index pairs sorted by ``first``'s stamp.
+    """
+    a, b = np.asarray(first, np.float64), np.asarray(second, np.float64) + offset
+    order = np.argsort(b)
+    bs = b[order]
+    cands = []
+    for i, t in enumerate(a):
+        lo, hi = np.searchsorted(bs, t - max_dt, "left"), np.searchsorted(bs, t + max_dt, "right")
+        cands += [(abs(t - bs[k]), i, int(order[k])) for k in range(lo, hi) if abs(t - bs[k]) < max_dt]
+    cands.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, j in cands:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    return sorted(pairs, key=lambda p: a[p[0]])
+
+
+# ---------------------------------------------------------------------------------------------- frames
+@dataclasses.dataclass
+class FrameFiles:
+    """What a layout resolves before any image is read: per frame the colour and depth files, the pose
+    ``c2w [B,4,4]`` float64, the ground truth (or ``None``), timestamps and the camera."""
+
+    color: list[Path]
+    depth: list[Path]
+    c2w: torch.Tensor
+    c2w_gt: torch.Tensor | None
+    timestamps: np.ndarray
+    camera: Camera | None
+
+
+def _existing(paths: list[Path], what: str) -> None:
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise DataError(f"{missing[0]}: missing {what} frame ({len(missing)} of {len(paths)} listed frames are "
+                        f"missing)")
+
+
+def tum_files(root: Path, trajectory: str, groundtruth: str, max_dt: float) -> FrameFiles:
+    """Resolve a TUM folder: pair RGB with depth, then with the trajectory (and the ground truth)."""
+    if not root.is_dir():
+        raise DataError(f"{root}: no such RGB-D sequence folder")
+    rgb_t, rgb_f = read_file_list(root / "rgb.txt")
+    dep_t, dep_f = read_file_list(root / "depth.txt")
+    pairs = associate(rgb_t, dep_t, max_dt)
+    if not pairs:
+        raise DataError(f"{root}: no RGB and depth frames within {max_dt} s of each other (data.rgbd.max_dt)")
+    traj_path = _resolve(root, trajectory)
+    traj_t, traj = read_trajectory(traj_path)
+    pose_of = dict(associate(rgb_t[[i for i, _ in pairs]], traj_t, max_dt))
+    keep = [k for k in range(len(pairs)) if k in pose_of]
+    if len(keep) < MIN_FRAMES:
+        raise DataError(f"{traj_path}: the trajectory covers {len(keep)} of {len(pairs)} RGB-D frames within "
+                        f"{max_dt} s, need at least {MIN_FRAMES} (data.rgbd.max_dt, or the wrong trajectory?)")
+    gt = None
+    if groundtruth:
+        gt_path = _resolve(root, groundtruth)
+        gt_t, gt_all = read_trajectory(gt_path)
+        gt_of = dict(associate(rgb_t[[pairs[k][0] for k in keep]], gt_t, max_dt))
+        if len(gt_of) < len(keep):
+            keep = [keep[k] for k in sorted(gt_of)]
+            if len(keep) < MIN_FRAMES:
+                raise DataError(f"{gt_path}: the ground truth covers {len(keep)} of the trajectory's frames within "
+                                f"{max_dt} s, need at least {MIN_FRAMES}")
+            gt_of = dict(associate(rgb_t[[pairs[k][0] for k in keep]], gt_t, max_dt))
+        gt = gt_all[[gt_of[k] for k in range(len(keep))]]
+    sel = [pairs[k] for k in keep]
+    color = [root / rgb_f[i] for i, _ in sel]
+    depth = [root / dep_f[j] for _, j in sel]
+    _existing(color, "colour")
+    _existing(depth, "depth")
+    c2w = traj[[pose_of[k] for k in keep]]
+    return FrameFiles(color, depth, c2w, gt, rgb_t[[i for i, _ in sel]], None)
+
+
+def _resolve(root: Path, name: str) -> Path:
+    p = Path(name).expanduser()
+    return p if p.is_absolute() else root / p
+
+
+def read_intrinsics_file(path: Path) -> Camera:
+    """A 3×3 intrinsics matrix file (``camera-intrinsics.txt``; OpenCV pixel convention)."""
+    rows = _rows(path, 3, "intrinsics")
+    if len(rows) != 3:
+        raise DataError(f"{path}: expected a 3×3 intrinsics matrix, got {len(rows)} rows")
+    K = [_floats(path, r, n) for n, r in enumerate(rows, 1)]
+    if K[0][0] <= 0 or K[1][1] <= 0 or K[2] != [0.0, 0.0, 1.0]:
+        raise DataError(f"{path}: expected [[fx 0 cx] [0 fy cy] [0 0 1]] with fx, fy > 0, got {K}")
+    return Camera(K[0][0], K[1][1], K[0][2], K[1][2])
+
+
+def folder_files(root: Path, intrinsics_file: str) -> FrameFiles:
+    """Resolve a pose-file folder: ``*.color.(png|jpg)``, ``*.depth.png``, ``*.pose.txt`` per frame."""
+    if not root.is_dir():
+        raise DataError(f"{root}: no such RGB-D frame folder")
+    colours = sorted([*root.glob("*.color.png"), *root.glob("*.color.jpg")])
+    if len(colours) < MIN_FRAMES:
+        raise DataError(f"{root}: found {len(colours)} '<frame>.color.png' images, need at least {MIN_FRAMES}")
+    stems = [p.name.split(".color.")[0] for p in colours]
+    depth = [root / f"{s}.depth.png" for s in stems]
+    poses = [root / f"{s}.pose.txt" for s in stems]
+    _existing(depth, "depth")
+    _existing(poses, "pose")
+    mats = []
+    for p in poses:
+        rows = _rows(p, 4, "pose")
+        if len(rows) != 4:
+            raise DataError(f"{p}: expected a 4×4 camera-to-world matrix, got {len(rows)} rows")
+        M = torch.tensor([_floats(p, r, n) for n, r in enumerate(rows, 1)], dtype=torch.float64)
+        R = M[:3, :3]
+        if (M[3] - torch.tensor([0.0, 0, 0, 1], dtype=torch.float64)).abs().max() > 1e-6 or \
+                (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3:
+            raise DataError(f"{p}: expected a rigid 4×4 camera-to-world matrix (orthonormal rotation, last row "
+                            f"0 0 0 1)")
+        mats.append(M)
+    cam = read_intrinsics_file(_resolve(root, intrinsics_file)) if intrinsics_file else None
+    return FrameFiles(colours, depth, torch.stack(mats), None, np.arange(len(colours), dtype=np.float64), cam)
+
+
+def _read_png(path: Path, depth: bool) -> np.ndarray:
+    try:
+        img = iio.imread(path)
+    except Exception as exc:  # noqa: BLE001 - any decoder failure means an unreadable frame
+        raise DataError(f"{path}: cannot read the image (truncated or corrupt?): {exc}") from None
+    if depth:
+        if img.ndim != 2 or img.dtype != np.uint16:
+            raise DataError(f"{path}: expected a 16-bit single-channel depth image, got shape {img.shape} {img.dtype}")
+        return img
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, 2)
+    if img.ndim != 3 or img.shape[2] not in (3, 4) or img.dtype != np.uint8:
+        raise DataError(f"{path}: expected an 8-bit RGB image, got shape {img.shape} {img.dtype}")
+    return img[..., :3]
+
+
+class _Warp:
+    """Undistortion of one camera's photos to its pinhole twin, then block downscaling."""
+
+    def __init__(self, camera: Camera, width: int, height: int) -> None:
+        self.identity = not camera.distorted
+        if not self.identity:
+            pos = source_positions(camera.colmap(width, height), camera.colmap(width, height, distorted=False))
+            grid = torch.from_numpy(pos) * torch.tensor([2.0 / width, 2.0 / height], dtype=torch.float64) - 1.0
+            self.grid = grid[None].float()
+            self.inside = ((pos[..., 0] >= 0) & (pos[..., 0] <= width) & (pos[..., 1] >= 0) & (pos[..., 1] <= height))
+        self.size = (height, width)
+
+    def colour(self, img: torch.Tensor) -> torch.Tensor:
+        if self.identity:
+            return img
+        out = F.grid_sample(img.permute(2, 0, 1)[None], self.grid, mode="bilinear", padding_mode="border",
+                            align_corners=False)
+        return out[0].permute(1, 2, 0)
+
+    def depth(self, d: torch.Tensor) -> torch.Tensor:
+        if self.identity:
+            return d
+        out = F.grid_sample(d[None, None], self.grid, mode="nearest", padding_mode="zeros", align_corners=False)
+        return out[0, 0] * torch.from_numpy(self.inside)
+
+    def valid(self) -> torch.Tensor:
+        return torch.ones(self.size, dtype=torch.bool) if self.identity else torch.from_numpy(self.inside)
+
+
+def downscale_depth(depth: torch.Tensor, d: int) -> torch.Tensor:
+    """``[H,W]`` → ``[H/d,W/d]``: the mean of each block's readings when all are valid and agree within
+    :data:`BLOCK_AGREE`, else 0 (invalid)."""
+    if d == 1:
+        return depth
+    H, W = depth.shape
+    blocks = depth[:H // d * d, :W // d * d].reshape(H // d, d, W // d, d).permute(0, 2, 1, 3).reshape(H // d,
+                                                                                                      W // d, -1)
+    lo, hi = blocks.min(-1).values, blocks.max(-1).values
+    ok = (lo > 0) & (hi - lo <= BLOCK_AGREE * lo)
+    return torch.where(ok, blocks.mean(-1), torch.zeros_like(lo))
+
+
+def load_frames(files: FrameFiles, camera: Camera, *, depth_scale: float, depth_range: tuple[float, float],
+                downscale: int, progress: bool = True) -> RGBDSequence:
+    """Decode, undistort and downscale the frames of ``files`` (one progress bar)."""
+    first = _read_png(files.color[0], depth=False)
+    H, W = first.shape[:2]
+    if W % downscale or H % downscale:
+        raise DataError(f"downscale: {downscale} does not divide the {W}×{H} frames")
+    raw = _read_png(files.depth[0], depth=True)
+    if (raw > 0).any():
+        med = float(np.median(raw[raw > 0])) / depth_scale
+        if not PLAUSIBLE_DEPTH[0] <= med <= PLAUSIBLE_DEPTH[1]:
+            raise DataError(f"depth_scale: {depth_scale} gives a median depth of {med:.3g} m in {files.depth[0].name}, "
+                            f"outside the plausible {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m (5000 for TUM, 1000 "
+                            f"for millimetres)")
+    warp = _Warp(camera, W, H)
+    imgs, deps = [], []
+    lo, hi = depth_range
+    for c, d in tqdm(list(zip(files.color, files.depth)), desc="rgbd frames", unit="frame", disable=not progress,
+                     leave=False):
+        rgb = _read_png(c, depth=False)
+        dep = _read_png(d, depth=True)
+        if rgb.shape[:2] != (H, W) or dep.shape != (H, W):
+            raise DataError(f"{c}: frames must all be {W}×{H} (colour and depth), got colour {rgb.shape[1]}×"
+                            f"{rgb.shape[0]} and depth {dep.shape[1]}×{dep.shape[0]} ({d.name})")
+        z = torch.from_numpy(dep.astype(np.float32)) / depth_scale
+        z = torch.where((z >= lo) & (z <= hi), z, torch.zeros_like(z))
+        im = warp.colour(torch.from_numpy(rgb).float() / 255.0)
+        if downscale > 1:
+            im = F.avg_pool2d(im.permute(2, 0, 1)[None], downscale)[0].permute(1, 2, 0)
+        imgs.append(im.contiguous())
+        deps.append(downscale_depth(warp.depth(z), downscale))
+    depths = torch.stack(deps)
+    if not bool((depths > 0).any()):
+        raise DataError(f"depth_range: no depth reading within [{lo}, {hi}] m at depth_scale {depth_scale} "
+                        f"(5000 for TUM, 1000 for millimetres)")
+    valid = warp.valid()
+    if downscale > 1:
+        valid = F.avg_pool2d(valid[None, None].float(), downscale)[0, 0] > 0.999
+    s = 1.0 / downscale
+    K = torch.tensor([[camera.fx * s, 0.0, (camera.cx + 0.5) * s], [0.0, camera.fy * s, (camera.cy + 0.5) * s],
+                      [0.0, 0.0, 1.0]], dtype=torch.float32)
+    B = len(files.color)
+    return RGBDSequence(torch.stack(imgs), depths, valid.expand(B, *valid.shape).clone(), K.expand(B, 3, 3).clone(),
+                        files.c2w, files.c2w_gt, torch.from_numpy(files.timestamps), [p.stem for p in files.color])
