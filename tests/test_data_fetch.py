@@ -25,6 +25,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from nsplat import cli
+from nsplat.data import archives as archives_mod
 from nsplat.data import fetch as fetch_mod
 from nsplat.data import prepare as prepare_mod
 from nsplat.data.nerf_synthetic import SPLITS, load_split
@@ -254,14 +255,14 @@ def test_full_disk_is_one_line_and_leaves_nothing_half_extracted(server, tmp_pat
         extract(zf, info, target)
         written.append(target)
 
-    extract = fetch_mod.extract_member
-    monkeypatch.setattr(fetch_mod, "extract_member", fill_disk)
+    extract = archives_mod.extract_member
+    monkeypatch.setattr(archives_mod, "extract_member", fill_disk)
     code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url)
     assert code == 2 and err == [f"error: disk full: no space left in {root}; free some space (or choose another "
                                  f"folder with --root / $NSPLAT_DATA) and run the command again"]
     assert len(written) == 3 and _files(root) == []
 
-    monkeypatch.setattr(fetch_mod, "extract_member", extract)
+    monkeypatch.setattr(archives_mod, "extract_member", extract)
     calls = []
 
     def fill_disk_later(src: Path, dst: Path, width: int) -> None:

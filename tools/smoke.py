@@ -34,6 +34,7 @@ SMOKE: dict[str, list[str]] = {
     "benchmarks.network_levers": ["--sizes", "64", "--reps", "1", "--compile-reps", "0"],
     "benchmarks.gpu_lego": ["--device", "cpu", "--quick"],
     "benchmarks.gt_views": ["--smoke"],
+    "benchmarks.refine_memory": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
 NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds"}

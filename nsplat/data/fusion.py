@@ -6,9 +6,10 @@ In the spirit of point-based SLAM's fusion (Keller et al., 3DV 2013), without it
    normal is the cross product of the vertex map's central differences (oriented towards the camera), left out
    at depth discontinuities (a neighbour's depth differs by more than ``edge`` of its own) and at grazing angles
    (``|cos|`` between the normal and the viewing ray below ``grazing``);
-2. its radius is the pixel's footprint on the surface, ``z / (f · |cos|)`` (``f`` the mean focal length in
-   pixels); its confidence is Keller et al.'s radial weight ``exp(−γ² / (2 · 0.6²))`` (``γ`` the distance to the
-   image centre over the half-diagonal), times ``|cos|``;
+2. its radius is the sample's footprint on the surface, ``s · z / (f · |cos|)`` (``f`` the mean focal length in
+   pixels, ``s`` the ``pixel_stride``: a sample stands for ``s × s`` pixels); its confidence is Keller et al.'s
+   radial weight ``exp(−γ² / (2 · 0.6²))`` (``γ`` the distance to the image centre over the half-diagonal), times
+   ``|cos|``;
 3. the vertices go to the world along the trajectory and merge per voxel of side ``voxel``: position, normal,
    colour and radius become confidence-weighted means over every frame that saw the voxel.
 
@@ -108,8 +109,8 @@ def frame_vertices(depth: torch.Tensor, K: torch.Tensor, cfg: FusionConfig) -> d
     weight = torch.exp(-gamma ** 2 / (2 * RADIAL_SIGMA ** 2)) * cos
     idx = torch.nonzero(ok.reshape(-1))[:, 0]
     return {"points": X.reshape(-1, 3)[idx], "normals": n.reshape(-1, 3)[idx],
-            "radius": (z / (f * cos.clamp_min(cfg.grazing))).reshape(-1)[idx], "weight": weight.reshape(-1)[idx],
-            "index": idx}
+            "radius": (cfg.pixel_stride * z / (f * cos.clamp_min(cfg.grazing))).reshape(-1)[idx],
+            "weight": weight.reshape(-1)[idx], "index": idx}
 
 
 def _candidates(depths: torch.Tensor, images: torch.Tensor, Ks: torch.Tensor, c2w: torch.Tensor, cfg: FusionConfig,

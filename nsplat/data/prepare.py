@@ -18,7 +18,8 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from nsplat.data.fetch import FetchError, check_scene, scene_frames, write_error
+from nsplat.data.archives import FetchError, check_scene, scene_frames
+from nsplat.data.fetch import write_error
 from nsplat.data.nerf_synthetic import SPLITS
 
 

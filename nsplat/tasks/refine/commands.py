@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import math
 import resource
+import time
+from pathlib import Path
 from typing import Any
 
 import imageio.v3 as iio
@@ -18,12 +20,24 @@ from nsplat.report import results
 from nsplat.runctx import RunContext
 from nsplat.scene import SurfelScene
 from nsplat.tasks.refine.config import Config
-from nsplat.tasks.refine.data import load_data
+from nsplat.tasks.refine.data import RefineData, load_data
 from nsplat.tasks.refine.filtering import improbable, point_errors
 from nsplat.tasks.refine.metrics import evaluate_state
 from nsplat.tasks.refine.model import Refiner, refiner_view
-from nsplat.tasks.refine.optimisers import active_groups, masked_l1, optimizers, set_lr, step_active
-from nsplat.tasks.refine.poses import pose_errors
+from nsplat.tasks.refine.optimisers import active_groups, depth_l1, masked_l1, optimizers, set_lr, step_active
+from nsplat.tasks.refine.poses import odometry_prior, pose_errors
+from nsplat.tasks.refine.sequence import (
+    fit_heldout,
+    frame_metrics,
+    heldout_refiner,
+    render_all,
+    table,
+    trajectory,
+    trajectory_metrics,
+    write_before_after,
+    write_tum,
+)
+from nsplat.tasks.refine.trajectory import ate
 from nsplat.view_model import ViewModel
 
 log = logging.getLogger("nsplat.tasks.refine")
@@ -80,10 +94,16 @@ def build(cfg: Config, scene: SurfelScene, frames: PosedViews, points: int | Non
 
 def restore(cfg: Config, ctx: RunContext) -> tuple[Refiner, int]:
     """The model of the run's latest checkpoint and its step."""
+    model, done, _ = restore_data(cfg, ctx)
+    return model, done
+
+
+def restore_data(cfg: Config, ctx: RunContext) -> tuple[Refiner, int, RefineData]:
+    """The model of the run's latest checkpoint, its step and the task's data."""
     payload = load_checkpoint(ctx.run_dir, map_location=ctx.device)
-    frames, scene = load_data(cfg, ctx.device)
-    t = build(cfg, scene, frames, checkpoint_rows(payload, "model", "scene._means"))
-    return t.modules["model"], t.load(payload)
+    data = load_data(cfg, ctx.device)
+    t = build(cfg, data.scene, data.frames, checkpoint_rows(payload, "model", "scene._means"))
+    return t.modules["model"], t.load(payload), data
 
 
 def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
@@ -96,12 +116,19 @@ def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
     active = active_groups(cfg, k)
     for opt in opts.values():
         opt.zero_grad(set_to_none=True)
-    img, alpha = model(idx, seed=op_seed(seed, "train", k))
+    img, alpha, depth = model(idx, seed=op_seed(seed, "train", k), with_depth=True)
     mask = fr.masks[idx] if cfg.mask_loss else torch.ones_like(fr.masks[idx])
     if cfg.coverage_mask > 0:
         mask = mask & (alpha.detach()[..., 0] >= cfg.coverage_mask)
     loss = masked_l1(img, fr.images[idx], mask)
-    loss.backward()
+    total = loss
+    if cfg.depth_loss > 0 and fr.depths is not None:
+        dloss = depth_l1(depth, alpha, fr.depths[idx], mask)
+        total = loss + cfg.depth_loss * dloss
+    if cfg.poses.odometry_weight > 0 and model.cameras is not None and model.cameras.twist is not None:
+        total = total + cfg.poses.odometry_weight * odometry_prior(model.cameras.twist * model.cameras.pose_mask,
+                                                                   cfg.poses.odometry_sigma)
+    total.backward()
     step_active(opts, active)
     done = k + 1
     if cfg.filter.due(done):
@@ -112,29 +139,99 @@ def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
             log.info("step %d: outlier filter removed %d points (%d left)", done, int(bad.sum()),
                      model.scene.num_points)
     out = {"loss/l1": float(loss.detach()), "scene/points": float(model.scene.num_points)}
+    if cfg.depth_loss > 0 and fr.depths is not None:
+        out["loss/depth"] = float(dloss.detach())
     if fr.viewmats_gt is not None:
         with torch.no_grad():
             V, _ = model.camera(torch.arange(len(fr), device=device))
-            rot, trans = pose_errors(V, fr.viewmats_gt)
-        out.update({"pose/rot_deg": float(rot.mean()), "pose/trans": float(trans.mean())})
+            if fr.depths is not None:  # an RGB-D sequence: its ground truth has a world frame of its own
+                out["pose/ate_train"] = ate(torch.linalg.inv(V.double()), torch.linalg.inv(fr.viewmats_gt.double()))[
+                    "rmse"]
+            else:
+                rot, trans = pose_errors(V, fr.viewmats_gt)
+                out.update({"pose/rot_deg": float(rot.mean()), "pose/trans": float(trans.mean())})
+    return out
+
+
+def sequence_state(model: Refiner, data: RefineData, cfg: Config, seed: int, *, fit: bool,
+                   progress: bool = True) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """An RGB-D refinement's figures in its current state: ``train`` and ``heldout`` image metrics (the held-out
+    cameras fitted to the frozen scene when ``fit``, else at the trajectory's poses), ATE / RPE of every frame's
+    camera, the point count; and the renders (``train``, ``heldout``) and poses (``c2w``)."""
+    seq = data.sequence
+    img = render_all(model, seed, cfg.optim.batch)
+    out: dict[str, Any] = {"train": frame_metrics(img, data.frames)}
+    renders = {"train": img}
+    held = None
+    if data.heldout is not None:
+        held = (fit_heldout(model, data.heldout, cfg, seed, seq, progress) if fit
+                else heldout_refiner(model, data.heldout))
+        renders["heldout"] = render_all(held, seed, cfg.optim.batch)
+        out["heldout"] = frame_metrics(renders["heldout"], data.heldout)
+    renders["c2w"] = trajectory(model, held, seq)
+    out.update(trajectory_metrics(renders["c2w"], seq))
+    out["points"] = model.scene.num_points
+    return out, renders
+
+
+def _initial(model: Refiner, data: RefineData, cfg: Config, ctx: RunContext, seed: int) -> dict[str, Any]:
+    """The "before" figures (written to ``metrics_initial.json``)."""
+    if data.sequence is None:
+        init, img0 = evaluate_state(model, seed, cfg.optim.batch)
+        torch.save(img0.cpu(), ctx.run_dir / "renders_initial.pt")
+        return init
+    init, renders = sequence_state(model, data, cfg, seed, fit=False)
+    if cfg.heldout.fit_before and data.heldout is not None:
+        fitted, _ = sequence_state(model, data, cfg, seed, fit=True)
+        init["heldout_fitted"] = fitted["heldout"]
+        init["heldout_fitted"].update({k: fitted[k] for k in fitted if k.startswith(("ate", "rpe"))})
+    torch.save({k: v.cpu() for k, v in renders.items()}, ctx.run_dir / "renders_initial.pt")
+    write_tum(ctx.run_dir / "trajectory_initial.txt", data.sequence.c2w, data.sequence, "initial trajectory")
+    return init
+
+
+def _sequence_final(model: Refiner, data: RefineData, cfg: Config, ctx: RunContext, seed: int,
+                    t: Trainables, clock: tuple[float, float]) -> dict[str, Any]:
+    """The "after" figures of an RGB-D refinement, the outputs (trajectory, PLY, sheets, video, ``metrics.json``)
+    and the before/after table on stdout."""
+    final, renders = sequence_state(model, data, cfg, seed, fit=True)
+    before = t.extra["initial"]
+    write_tum(ctx.run_dir / "trajectory.txt", renders["c2w"], data.sequence, "refined trajectory")
+    initial = torch.load(ctx.run_dir / "renders_initial.pt")
+    shown = write_before_after(ctx.run_dir / "before_after", data.frames, initial["train"], renders["train"], "train")
+    if data.heldout is not None:
+        shown += write_before_after(ctx.run_dir / "before_after", data.heldout, initial["heldout"],
+                                    renders["heldout"], "heldout")
+    out = {"before": before, "after": final, "resolution": [data.frames.width, data.frames.height],
+           "frames": {"train": len(data.frames), "heldout": 0 if data.heldout is None else len(data.heldout)},
+           "wall_s": time.perf_counter() - clock[0], "cpu_s": time.process_time() - clock[1],
+           "steps_wall_s": float(t.extra.get("seconds", 0.0)), "steps_cpu_s": float(t.extra.get("cpu_seconds", 0.0)),
+           "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+           "removed": int(t.extra.get("removed", 0)), "steps": cfg.optim.steps}
+    write_json(ctx.run_dir / "metrics.json", out)
+    results.info("before/after (%d training frames, %d held out, %d×%d):\n%s", out["frames"]["train"],
+                 out["frames"]["heldout"], *out["resolution"], table(before, final))
+    results.info("outputs: %s, %s, %s", ctx.run_dir / "trajectory.txt", ctx.run_dir / "scene.ply",
+                 ", ".join(str(Path(p)) for p in shown))
     return out
 
 
 def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
-    """Refine; returns the final metrics (also written to ``metrics_final.json``)."""
+    """Refine; returns the final metrics (also written to ``metrics_final.json``; for an RGB-D sequence
+    ``metrics.json`` holds the before/after figures)."""
+    clock = (time.perf_counter(), time.process_time())
     torch.manual_seed(ctx.seed)
-    frames, scene = load_data(cfg, ctx.device)
+    data = load_data(cfg, ctx.device)
     payload = latest_payload(ctx.run_dir, ctx.resume, ctx.device)
-    t = build(cfg, scene, frames, checkpoint_rows(payload, "model", "scene._means"))
+    t = build(cfg, data.scene, data.frames, checkpoint_rows(payload, "model", "scene._means"))
     engine = Engine(ctx.run_dir, cfg.log, cfg.optim.steps, desc="refine")
     start = engine.resume(t, payload)
     model = t.modules["model"]
     eval_seed = op_seed(ctx.seed, "eval")
     if start == 0:
-        init, img0 = evaluate_state(model, eval_seed, cfg.optim.batch)
+        init = _initial(model, data, cfg, ctx, eval_seed)
         write_json(ctx.run_dir / "metrics_initial.json", init)
-        torch.save(img0.cpu(), ctx.run_dir / "renders_initial.pt")
-        log.info("initial: %s", init)
+        log.info("initial: %s", {k: v for k, v in init.items() if not isinstance(v, dict)})
         t.extra = {"initial": init, "seconds": 0.0, "removed": 0}
 
     def images(done: int, writer: Any) -> None:
@@ -145,21 +242,27 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
 
     engine.train(t, lambda k: step(cfg, t, ctx.seed, k), start=start, images=images,
                  view=lambda: refiner_view(model, eval_seed))
+    _save_outputs(model, ctx)
+    if data.sequence is not None:
+        return _sequence_final(model, data, cfg, ctx, eval_seed, t, clock)
     final, img = evaluate_state(model, eval_seed, cfg.optim.batch)
     final.update(seconds=float(t.extra.get("seconds", 0.0)), removed=int(t.extra.get("removed", 0)),
                  steps=cfg.optim.steps, peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
     write_json(ctx.run_dir / "metrics_final.json", final)
     torch.save(img.cpu(), ctx.run_dir / "renders_final.pt")
-    _save_outputs(model, ctx)
     results.info("final: %s", final)
     return final
 
 
 def evaluate(cfg: Config, ctx: RunContext, split: str = "train") -> dict[str, Any]:
-    """Metrics of the run's latest checkpoint (the refined frames; ``split`` is not used: refinement
-    is scored on the frames it refines). Written to ``eval.json``."""
-    model, done = restore(cfg, ctx)
-    out, _ = evaluate_state(model, op_seed(ctx.seed, "eval"), cfg.optim.batch)
+    """Metrics of the run's latest checkpoint (the refined frames; for an RGB-D sequence also the held-out frames
+    after fitting their cameras, and ATE / RPE; ``split`` is not used). Written to ``eval.json``."""
+    model, done, data = restore_data(cfg, ctx)
+    seed = op_seed(ctx.seed, "eval")
+    if data.sequence is not None:
+        out, _ = sequence_state(model, data, cfg, seed, fit=True)
+    else:
+        out, _ = evaluate_state(model, seed, cfg.optim.batch)
     out["step"] = done
     write_json(ctx.run_dir / "eval.json", out)
     results.info("eval: %s", out)

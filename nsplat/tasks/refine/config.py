@@ -5,6 +5,7 @@ import dataclasses
 from typing import Literal
 
 from nsplat.config import ConfigError, require, require_fields
+from nsplat.data.fusion import FusionConfig
 from nsplat.data.room import RoomSpec
 from nsplat.engine import LogConfig
 from nsplat.render import RenderConfig
@@ -40,20 +41,79 @@ class NerfSource:
 
 
 @dataclasses.dataclass
+class RGBDSource:
+    """A real RGB-D sequence with a SLAM / odometry trajectory (:mod:`nsplat.data.rgbd`), fused into the initial
+    cloud (:mod:`nsplat.data.fusion`) or with the SLAM system's own cloud (``cloud``).
+
+    Attributes:
+        root: the sequence folder; empty: ``<data root>/rgbd/tum_fr1_rpy_50`` (:mod:`nsplat.data.paths`).
+        layout: ``tum`` (rgb.txt, depth.txt, TUM trajectory files) or ``folder`` (``<frame>.color.png``,
+            ``<frame>.depth.png``, ``<frame>.pose.txt`` camera → world 4×4, and ``intrinsics_file``).
+        trajectory: the trajectory to refine (TUM layout; relative to ``root`` unless absolute).
+        groundtruth: a ground-truth trajectory for ATE / RPE ("" : none).
+        intrinsics_file: the folder layout's 3×3 intrinsics file ("" : ``intrinsics`` or ``camera``).
+        camera: a TUM camera preset (``fr1``, ``fr2``, ``fr3``) used when ``intrinsics`` is empty.
+        intrinsics: ``[fx, fy, cx, cy]`` in OpenCV's pixel convention (overrides the preset).
+        distortion: OpenCV ``[k1, k2, p1, p2, k3]`` with ``intrinsics`` (empty: none).
+        depth_scale: depth PNG units per metre (5000 TUM, 1000 millimetres).
+        depth_range: ``[min, max]`` valid depth in metres.
+        max_dt: largest time difference (s) when pairing RGB, depth and poses.
+        downscale: integer image downscale (2: 640×480 → 320×240).
+        stride: use every ``stride``-th frame. limit: at most this many frames (0: all).
+        holdout_every: every this many frames (from the first) is held out of the refinement and scored.
+        valid: pixels scored and fitted: ``depth`` (inside the undistorted photo and with a depth reading, as the
+            paper masks RGB pixels without depth) or ``image`` (inside the undistorted photo).
+        cloud: a PLY of the SLAM system's surfels (``x y z``; ``nx ny nz``, ``red green blue`` and ``radius``
+            when present) instead of fusing the depth.
+        fusion: :class:`nsplat.data.fusion.FusionConfig`.
+    """
+
+    root: str = ""
+    layout: Literal["tum", "folder"] = "tum"
+    trajectory: str = "odometry.txt"
+    groundtruth: str = "groundtruth.txt"
+    intrinsics_file: str = ""
+    camera: str = "fr1"
+    intrinsics: list[float] = dataclasses.field(default_factory=list)
+    distortion: list[float] = dataclasses.field(default_factory=list)
+    depth_scale: float = 5000.0
+    depth_range: list[float] = dataclasses.field(default_factory=lambda: [0.1, 5.0])
+    max_dt: float = 0.02
+    downscale: int = 2
+    stride: int = 1
+    limit: int = 0
+    holdout_every: int = 8
+    valid: Literal["depth", "image"] = "depth"
+    cloud: str = ""
+    fusion: FusionConfig = dataclasses.field(default_factory=FusionConfig)
+
+    def __post_init__(self) -> None:
+        require_fields(self, depth_scale=">0", max_dt=">0", downscale=">=1", stride=">=1", limit=">=0",
+                       holdout_every=">=0")
+        require(len(self.depth_range) == 2 and 0 <= self.depth_range[0] < self.depth_range[1], "depth_range",
+                "[min, max] metres with 0 <= min < max", self.depth_range)
+        require(self.holdout_every != 1, "holdout_every", "0 (none) or >= 2 (1 would hold out every frame)",
+                self.holdout_every)
+
+
+@dataclasses.dataclass
 class DataConfig:
     """Where frames, cameras and the initial cloud come from.
 
     Attributes:
-        source: ``room`` (synthetic benchmark) or ``nerf`` (NeRF-synthetic + PLY cloud).
+        source: ``room`` (synthetic benchmark), ``nerf`` (NeRF-synthetic + PLY cloud) or ``rgbd`` (a real RGB-D
+            sequence with its trajectory).
         room: the room benchmark's settings.
         nerf: the NeRF-synthetic settings.
+        rgbd: the RGB-D sequence's settings.
         cache_dir: cache folder (relative to the repository root unless absolute).
         init_opacity: initial opacity of the cloud's points (where opacity is per point).
     """
 
-    source: Literal["room", "nerf"] = "room"
+    source: Literal["room", "nerf", "rgbd"] = "room"
     room: RoomSpec = dataclasses.field(default_factory=RoomSpec)
     nerf: NerfSource = dataclasses.field(default_factory=NerfSource)
+    rgbd: RGBDSource = dataclasses.field(default_factory=RGBDSource)
     cache_dir: str = "data_cache"
     init_opacity: float = 0.9
 
@@ -90,6 +150,11 @@ class PoseConfig:
         pivot: rotation pivot of the corrections: ``scene`` (the initial cloud's median depth on each camera's
             optical axis; decouples rotation from translation, see :mod:`nsplat.tasks.refine.poses`) or
             ``centre`` (the optical centre).
+        odometry_weight: weight of the odometry prior of a sequence (0: none): the mean over consecutive training
+            frames of ``‖Δυ‖²/σ_t² + ‖Δω‖²/σ_r²``, ``Δ`` the difference of their corrections (camera-frame twists,
+            ``pivot: centre``): the trajectory's frame-to-frame motion is trusted to ``odometry_sigma`` and its drift
+            is what the images correct (an odometry edge of a pose graph).
+        odometry_sigma: ``[σ_t metres, σ_r radians]`` of that prior.
     """
 
     learn: bool = True
@@ -97,9 +162,53 @@ class PoseConfig:
     shared_focal: bool = True
     frozen: list[int] = dataclasses.field(default_factory=list)
     pivot: Literal["scene", "centre"] = "centre"
+    odometry_weight: float = 0.0
+    odometry_sigma: list[float] = dataclasses.field(default_factory=lambda: [0.005, 0.01])
 
     def __post_init__(self) -> None:
-        require_fields(self, frozen=">=0")
+        require_fields(self, frozen=">=0", odometry_weight=">=0")
+        require(len(self.odometry_sigma) == 2 and min(self.odometry_sigma) > 0, "odometry_sigma",
+                "[σ_t, σ_r] > 0", self.odometry_sigma)
+        require(self.odometry_weight == 0 or self.pivot == "centre", "odometry_weight",
+                "0 unless pivot is 'centre' (the prior compares camera-frame twists about the optical centres)",
+                self.odometry_weight)
+
+
+@dataclasses.dataclass
+class ExposureConfig:
+    """A per-frame affine exposure ``gain · image + bias`` (per channel) after rendering, for cameras with
+    auto-exposure (the TUM Kinects). The first training frame keeps gain 1 and bias 0 (it fixes the scale that
+    albedo and shading share with the gains).
+
+    Attributes:
+        learn: allocate and learn the log-gains and biases (nothing allocated otherwise); their Adam rate is
+            ``optim.learn.exposure``.
+    """
+
+    learn: bool = False
+
+
+@dataclasses.dataclass
+class HeldoutConfig:
+    """Held-out frames (``data.rgbd.holdout_every``): after the refinement their cameras (and exposures) are fitted
+    to the frozen scene, as pose-refining methods do before scoring a held-out view.
+
+    Attributes:
+        steps: Adam steps of the fit (0: score at the trajectory's poses).
+        fit_before: also fit them to the initial scene and report it (``heldout_fitted`` of the "before"
+            figures): what the fit alone gives, without the refinement.
+        lr_pose: rate of the pose twists. lr_exposure: rate of the exposures (when learned).
+        decay_every: halve the rates every this many steps (0: constant).
+    """
+
+    steps: int = 100
+    fit_before: bool = False
+    lr_pose: float = 0.002
+    lr_exposure: float = 0.005
+    decay_every: int = 40
+
+    def __post_init__(self) -> None:
+        require_fields(self, steps=">=0", lr_pose=">0", lr_exposure=">0", decay_every=">=0")
 
 
 @dataclasses.dataclass
@@ -123,7 +232,7 @@ class OptimConfig:
         decay: the factor applied at each decay.
         learn: Adam learning rate per group: scene attributes (raw storage units of
             :class:`SurfelScene`; used for the attributes ``scene.learn`` makes learnable), ``sh``, ``pose``
-            (twist: metres / radians) and ``focal`` (log focal).
+            (twist: metres / radians), ``focal`` (log focal) and ``exposure`` (log-gain and bias).
     """
 
     steps: int = 300
@@ -136,9 +245,10 @@ class OptimConfig:
     decay: float = 0.5
     learn: dict[str, float] = dataclasses.field(default_factory=lambda: {
         "means": 1e-3, "normals": 1e-2, "scales": 1e-2, "opacities": 5e-2, "features": 1e-2, "sh": 1e-2,
-        "pose": 1e-3, "focal": 1e-4})
+        "pose": 1e-3, "focal": 1e-4, "exposure": 5e-3})
 
     def __post_init__(self) -> None:
+        self.learn = {**OptimConfig.__dataclass_fields__["learn"].default_factory(), **self.learn}
         require(all(g in GROUPS and v > 0 for g, v in self.learn.items()), "learn",
                 f"positive rates for groups among {list(GROUPS)}", self.learn)
         require(all(g in GROUPS for g in self.warmup_groups), "warmup_groups", f"names from {list(GROUPS)}",
@@ -147,8 +257,8 @@ class OptimConfig:
                        decay="prob")
 
 
-#: Optimiser parameter-group names: camera groups, then scene + shading groups.
-CAMERA_GROUPS = ("pose", "focal")
+#: Optimiser parameter-group names: camera groups (pose, focal, exposure), then scene + shading groups.
+CAMERA_GROUPS = ("pose", "focal", "exposure")
 GROUPS = CAMERA_GROUPS + ("means", "normals", "scales", "opacities", "features", "sh")
 
 
@@ -160,8 +270,12 @@ class Config:
         task: ``refine``. seed: the run seed (batch order, every op seed).
         data: :class:`DataConfig`, frames, cameras and the initial cloud. scene: which point attributes exist
             and are learned (:class:`nsplat.scene.SceneConfig`). shading: :class:`ShadingConfig`.
-        poses: :class:`PoseConfig`. render: the render settings (:class:`nsplat.render.RenderConfig`).
+        poses: :class:`PoseConfig`. exposure: :class:`ExposureConfig`. heldout: :class:`HeldoutConfig`.
+        render: the render settings (:class:`nsplat.render.RenderConfig`).
         optim: :class:`OptimConfig`. mask_loss: restrict the loss to the frames' valid pixels.
+        depth_loss: weight of the relative depth error of RGB-D frames (:func:`nsplat.tasks.refine.optimisers.depth_l1`:
+            the rendered depth against the sensor's, on the loss pixels with a reading) added to the L1 image loss
+            (0: images only, the paper's loss).
         coverage_mask: also leave out of the loss the pixels where the current render's (detached) alpha is
             below this, in [0, 1] (0: off). Reference pixels that no point covers (parts of the room no keyframe
             saw) cannot be explained by any pose; against the background colour they pull every camera towards
@@ -176,18 +290,23 @@ class Config:
     scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
     shading: ShadingConfig = dataclasses.field(default_factory=ShadingConfig)
     poses: PoseConfig = dataclasses.field(default_factory=PoseConfig)
+    exposure: ExposureConfig = dataclasses.field(default_factory=ExposureConfig)
+    heldout: HeldoutConfig = dataclasses.field(default_factory=HeldoutConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     mask_loss: bool = True
+    depth_loss: float = 0.0
     coverage_mask: float = 0.0
     filter: FilterConfig = dataclasses.field(default_factory=FilterConfig)
     log: LogConfig = dataclasses.field(default_factory=LogConfig)
 
     def __post_init__(self) -> None:
         require(self.task == "refine", "task", "'refine'", self.task)
-        require_fields(self, seed=">=0", coverage_mask="unit")
+        require_fields(self, seed=">=0", coverage_mask="unit", depth_loss=">=0")
         if self.render.background is not None and len(self.render.background) != self.scene.channels:
             raise ConfigError(f"render.background: expected {self.scene.channels} values, "
                               f"got {len(self.render.background)}")
+        if self.data.source == "rgbd" and self.scene.channels != 3:
+            raise ConfigError(f"scene.channels: expected 3 (RGB) for data.source 'rgbd', got {self.scene.channels}")
         if self.shading.model in ("sh", "lambert") and self.scene.channels != 3:
             raise ConfigError(f"shading.model={self.shading.model!r} needs scene.channels = 3")

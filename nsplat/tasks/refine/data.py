@@ -1,25 +1,125 @@
-"""The refine task's data: the frames to refine against and the initial scene (``data.source``: ``room`` or
-``nerf``)."""
+"""The refine task's data: the frames to refine against and the initial scene (``data.source``: ``room``,
+``nerf`` or ``rgbd``).
+
+For ``rgbd`` the sequence is split into training frames (refined with the scene) and held-out frames (every
+``holdout_every``-th, scored after their cameras are fitted to the frozen scene); the initial cloud is fused
+from the training frames' depth along the given trajectory (or read from the SLAM system's PLY).
+"""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from nsplat.cameras import perturb_viewmats
 from nsplat.config import ConfigError
+from nsplat.data.fusion import fuse
 from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
+from nsplat.data.pointclouds import read_point_ply, read_vertex_element
+from nsplat.data.rgbd import RGBDSequence, camera_of, folder_files, load_frames, tum_files
 from nsplat.data.room import load_room
 from nsplat.data.views import PosedViews
+from nsplat.errors import DataError
 from nsplat.scene import SurfelScene
-from nsplat.tasks.refine.config import Config
+from nsplat.tasks.refine.config import Config, RGBDSource
+
+#: The default RGB-D sequence under the data root (``nsplat data fetch tum_fr1_rpy`` has the whole sequence).
+DEFAULT_RGBD = "rgbd/tum_fr1_rpy_50"
 
 
-def load_data(cfg: Config, device: torch.device) -> tuple[PosedViews, SurfelScene]:
-    """Frames (initial ``viewmats``, ``viewmats_gt``, bool ``masks [B,H,W]``) and the initial scene of
-    ``cfg.data`` (on ``device``)."""
+@dataclasses.dataclass
+class Sequence:
+    """The timeline of an RGB-D source: every frame's timestamp ``[F]`` (float64), the initial camera → world poses
+    ``c2w [F,4,4]`` (float64), the ground truth ``c2w_gt [F,4,4]`` or ``None``, and which frames train
+    (``train``) and which are held out (``heldout``), as indices into the timeline."""
+
+    timestamps: torch.Tensor
+    c2w: torch.Tensor
+    c2w_gt: torch.Tensor | None
+    train: list[int]
+    heldout: list[int]
+
+
+@dataclasses.dataclass
+class RefineData:
+    """What :func:`load_data` returns: training ``frames``, the initial ``scene``, and for an RGB-D source the
+    ``heldout`` frames and the ``sequence`` (else ``None``)."""
+
+    frames: PosedViews
+    scene: SurfelScene
+    heldout: PosedViews | None = None
+    sequence: Sequence | None = None
+
+
+def split(count: int, every: int) -> tuple[list[int], list[int]]:
+    """``(train, heldout)`` frame indices: every ``every``-th frame from the first is held out (0: none)."""
+    held = list(range(0, count, every)) if every else []
+    return [i for i in range(count) if i not in set(held)], held
+
+
+def _views(seq: RGBDSequence, valid: str) -> PosedViews:
+    """The frames as posed views; ``viewmats_gt`` is the ground truth in its own world frame (compare after an
+    alignment only)."""
+    mask = seq.valid & (seq.depths > 0) if valid == "depth" else seq.valid.clone()
+    gt = None if seq.c2w_gt is None else torch.linalg.inv(seq.c2w_gt).float()
+    return PosedViews(seq.images, torch.linalg.inv(seq.c2w).float(), seq.Ks, list(seq.names), masks=mask,
+                      viewmats_gt=gt, depths=seq.depths)
+
+
+def _slam_cloud(path: Path, cfg: Config) -> SurfelScene:
+    """A SLAM system's surfel PLY: positions, normals (required), colours and radii where present."""
+    cloud = read_point_ply(path)
+    if cloud.normals is None:
+        raise DataError(f"{path}: the cloud has no normals (nx ny nz); surfels need them (or leave data.rgbd.cloud "
+                        f"empty to fuse the depth frames)")
+    _, vertex, names = read_vertex_element(path)
+    scales = None
+    if "radius" in names:
+        r = torch.from_numpy(np.asarray(vertex["radius"], np.float64))
+        if not bool(torch.isfinite(r).all()) or bool((r <= 0).any()):
+            raise DataError(f"{path}: 'radius' must be positive and finite")
+        scales = (cfg.data.rgbd.fusion.scale_factor * r)[:, None].expand(-1, 2).float()
+    colours = cloud.colours.float() if cloud.colours is not None else 0.5
+    return SurfelScene.from_points(cfg.scene, cloud.points.float(), cloud.normals.float(), scales=scales,
+                                   opacities=cfg.data.init_opacity, features=colours)
+
+
+def load_rgbd(src: RGBDSource, cfg: Config, progress: bool = True) -> RefineData:
+    """Frames, held-out frames, timeline and the initial scene of an RGB-D source (on the CPU)."""
+    root = resolve_data(src.root, DEFAULT_RGBD)
+    if src.layout == "tum":
+        files = tum_files(root, src.trajectory, src.groundtruth, src.max_dt)
+    else:
+        files = folder_files(root, src.intrinsics_file)
+    pick = list(range(0, len(files.color), src.stride))[:src.limit or None]
+    if len(pick) < 3:
+        raise DataError(f"data.rgbd.stride/limit: {len(pick)} frames left of {len(files.color)}, need at least 3")
+    files = dataclasses.replace(
+        files, color=[files.color[i] for i in pick], depth=[files.depth[i] for i in pick], c2w=files.c2w[pick],
+        c2w_gt=None if files.c2w_gt is None else files.c2w_gt[pick], timestamps=files.timestamps[pick])
+    camera = files.camera if files.camera is not None and not src.intrinsics else \
+        camera_of(src.camera, src.intrinsics, src.distortion)
+    scene = _slam_cloud(resolve(src.cloud), cfg) if src.cloud else None  # checked before any frame is decoded
+    seq = load_frames(files, camera, depth_scale=src.depth_scale, depth_range=tuple(src.depth_range),
+                      downscale=src.downscale, progress=progress)
+    train, held = split(len(seq), src.holdout_every)
+    tr = seq.subset(train)
+    if scene is None:
+        s = fuse(tr.depths, tr.images, tr.Ks, tr.c2w, src.fusion, progress=progress)
+        scene = SurfelScene.from_points(cfg.scene, s.means, s.normals, scales=s.scales[:, None].expand(-1, 2),
+                                        opacities=cfg.data.init_opacity, features=s.colours)
+    timeline = Sequence(seq.timestamps, seq.c2w, seq.c2w_gt, train, held)
+    return RefineData(_views(tr, src.valid), scene, _views(seq.subset(held), src.valid) if held else None, timeline)
+
+
+def load_data(cfg: Config, device: torch.device, progress: bool = True) -> RefineData:
+    """Frames (initial ``viewmats``; ``viewmats_gt`` for the synthetic sources; bool ``masks [B,H,W]``), the
+    initial scene and, for ``rgbd``, the held-out frames and the timeline, of ``cfg.data`` (on ``device``)."""
     d = cfg.data
+    heldout = sequence = None
     if d.source == "room":
         room = load_room(d.room, resolve(d.cache_dir))
         frames = room.views()
@@ -27,6 +127,9 @@ def load_data(cfg: Config, device: torch.device) -> tuple[PosedViews, SurfelScen
         scene = SurfelScene.from_points(cfg.scene, room.means, room.normals,
                                         scales=room.scales[:, None].expand(n, 2).contiguous(),
                                         opacities=torch.full((n,), d.init_opacity), features=room.colours)
+    elif d.source == "rgbd":
+        out = load_rgbd(d.rgbd, cfg, progress)
+        frames, scene, heldout, sequence = out.frames, out.scene, out.heldout, out.sequence
     else:
         nf = d.nerf
         views = load_split(resolve_data(nf.root, "nerf_synthetic/lego_400"), nf.split, resolution=nf.resolution,
@@ -40,4 +143,4 @@ def load_data(cfg: Config, device: torch.device) -> tuple[PosedViews, SurfelScen
         init = perturb_viewmats(views.viewmats, nf.rot_deg, nf.trans_frac * extent, generator=g)
         masks = torch.ones(views.images.shape[:3], dtype=torch.bool)
         frames = dataclasses.replace(views, masks=masks, viewmats=init.float(), viewmats_gt=views.viewmats)
-    return frames.to(device), scene.to(device)
+    return RefineData(frames.to(device), scene.to(device), None if heldout is None else heldout.to(device), sequence)

@@ -11,13 +11,14 @@ from nsplat.scene import SurfelScene
 from nsplat.sh import SHLighting
 from nsplat.shading import lambert
 from nsplat.tasks.refine.config import Config
+from nsplat.tasks.refine.exposure import Exposure
 from nsplat.tasks.refine.poses import CameraCorrection
 from nsplat.view_model import TrainingCameras, ViewModel
 
 
 def render_cameras(rcfg: RenderConfig, scene: SurfelScene, features: torch.Tensor, viewmats: torch.Tensor,
                    Ks: torch.Tensor, width: int, height: int, seed: int,
-                   background: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                   background: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render cameras ``[B]`` through the gateway (:func:`nsplat.render.render`).
 
     Args:
@@ -26,15 +27,15 @@ def render_cameras(rcfg: RenderConfig, scene: SurfelScene, features: torch.Tenso
         seed: the op's sampling seed. background: ``[C]`` overriding ``render.background``.
 
     Returns:
-        ``(image [B,H,W,C], alpha [B,H,W,1])``.
+        ``(image [B,H,W,C], alpha [B,H,W,1], depth [B,H,W,1])`` (depth: the alpha-weighted camera z).
     """
     if features.dim() == 3:
         outs = [render_cameras(rcfg, scene, features[b], viewmats[b:b + 1], Ks[b:b + 1], width, height, seed,
                                background) for b in range(features.shape[0])]
-        return torch.cat([o[0] for o in outs]), torch.cat([o[1] for o in outs])
+        return tuple(torch.cat([o[i] for o in outs]) for i in range(3))  # type: ignore[return-value]
     out = gateway.render(scene.means, scene.normals, scene.scales, scene.opacities, features, viewmats, Ks, width,
                          height, rcfg, seed=seed, background=background)
-    return out.image, out.alpha
+    return out.image, out.alpha, out.depth
 
 
 def scene_pivots(means: torch.Tensor, viewmats: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
@@ -50,9 +51,13 @@ def scene_pivots(means: torch.Tensor, viewmats: torch.Tensor, near: float = 1e-3
 
 
 class Refiner(torch.nn.Module):
-    """Scene + shading + camera corrections; produces rendered views of camera indices."""
+    """Scene + shading + camera corrections (+ per-frame exposure); produces rendered views of camera indices.
 
-    def __init__(self, cfg: Config, scene: SurfelScene, frames: PosedViews) -> None:
+    ``anchor``: keep ``poses.frozen`` fixed and frame 0's exposure at the identity (the gauge of a refinement);
+    ``False`` for cameras fitted to a frozen scene (held-out frames), where the scene fixes the gauge.
+    """
+
+    def __init__(self, cfg: Config, scene: SurfelScene, frames: PosedViews, anchor: bool = True) -> None:
         super().__init__()
         self.cfg = cfg
         self.scene = scene
@@ -62,8 +67,11 @@ class Refiner(torch.nn.Module):
         p = cfg.poses
         pivots = scene_pivots(scene.means.detach(), frames.viewmats) if p.pivot == "scene" else None
         self.cameras = (CameraCorrection(len(frames), learn_pose=p.learn, learn_focal=p.learn_focal,
-                                         shared_focal=p.shared_focal, frozen=p.frozen, pivots=pivots)
+                                         shared_focal=p.shared_focal, frozen=p.frozen if anchor else [],
+                                         pivots=pivots)
                         if (p.learn or p.learn_focal) else None)
+        self.exposure = (Exposure(len(frames), cfg.scene.channels, frozen=[0] if anchor else [])
+                         if cfg.exposure.learn else None)
 
     def camera(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrected ``(viewmats [b,4,4], Ks [b,3,3])`` of cameras ``index [b]``."""
@@ -81,23 +89,31 @@ class Refiner(torch.nn.Module):
             return lambert(s.features, s.normals, viewmats)
         return s.features
 
-    def forward(self, index: torch.Tensor, seed: int, features: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Render cameras ``index [b]``: ``(image [b,H,W,C], alpha [b,H,W,1])``. ``features`` overrides
-        the shaded colours (used by the outlier filter's probe)."""
+    def forward(self, index: torch.Tensor, seed: int, features: torch.Tensor | None = None,
+                with_depth: bool = False) -> tuple[torch.Tensor, ...]:
+        """Render cameras ``index [b]``: ``(image [b,H,W,C], alpha [b,H,W,1])``, and with ``with_depth`` the
+        alpha-weighted camera z ``[b,H,W,1]`` too. ``features`` overrides the shaded colours (used by the outlier
+        filter's probe; no exposure is applied then)."""
         V, K = self.camera(index)
         s = self.scene
         f = self.colours(V) if features is None else features
         bg = None
         if f.shape[-1] != s.cfg.channels:  # the outlier filter's probe: other channels on a zero background
             bg = f.new_zeros(f.shape[-1])
-        return render_cameras(self.cfg.render, s, f, V, K, self.frames.width, self.frames.height, seed, bg)
+        img, alpha, depth = render_cameras(self.cfg.render, s, f, V, K, self.frames.width, self.frames.height, seed,
+                                           bg)
+        if self.exposure is not None and features is None:
+            img = self.exposure(img, index)
+        return (img, alpha, depth) if with_depth else (img, alpha)
 
     def pose_parameters(self) -> list[torch.nn.Parameter]:
         return [] if self.cameras is None else [p for p in (self.cameras.twist,) if p is not None]
 
     def focal_parameters(self) -> list[torch.nn.Parameter]:
         return [] if self.cameras is None or self.cameras.log_focal is None else [self.cameras.log_focal]
+
+    def exposure_parameters(self) -> list[torch.nn.Parameter]:
+        return [] if self.exposure is None else [self.exposure.log_gain, self.exposure.bias]
 
 
 def refiner_view(model: Refiner, seed: int = 0) -> ViewModel:

@@ -18,6 +18,8 @@ def optimizers(model: Refiner, cfg: Config) -> dict[str, torch.optim.Optimizer]:
         cam_groups.append({"params": model.pose_parameters(), "lr": lr["pose"], "name": "pose"})
     if model.focal_parameters():
         cam_groups.append({"params": model.focal_parameters(), "lr": lr["focal"], "name": "focal"})
+    if model.exposure_parameters():
+        cam_groups.append({"params": model.exposure_parameters(), "lr": lr["exposure"], "name": "exposure"})
     if cam_groups:
         out["camera"] = torch.optim.Adam(cam_groups)
     scene_groups = model.scene.param_groups({k: v for k, v in lr.items() if k in ATTRIBUTES})
@@ -73,3 +75,12 @@ def masked_l1(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> torch
     (a 0-dim tensor)."""
     m = mask[..., None].to(img.dtype)
     return ((img - ref).abs() * m).sum() / (m.sum() * img.shape[-1]).clamp_min(1.0)
+
+
+def depth_l1(depth: torch.Tensor, alpha: torch.Tensor, sensor: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The mean relative depth error ``|d̂/α − d| / d`` of rendered ``depth``/``alpha`` ``[B,H,W,1]`` against
+    ``sensor`` depth ``[B,H,W]`` over the pixels of ``mask [B,H,W]`` that have a reading (a 0-dim tensor)."""
+    m = (mask & (sensor > 0)).to(depth.dtype)
+    d = sensor.clamp_min(1e-6)
+    err = (depth[..., 0] / alpha[..., 0].clamp_min(1e-3) - d).abs() / d
+    return (err * m).sum() / m.sum().clamp_min(1.0)

@@ -132,6 +132,20 @@ class CameraCorrection(torch.nn.Module):
         return idx
 
 
+def odometry_prior(twists: torch.Tensor, sigma: tuple[float, float] | list[float]) -> torch.Tensor:
+    """The odometry prior of consecutive cameras' corrections ``twists [B,6]`` (``(υ, ω)``, in time order): the mean
+    over the ``B − 1`` neighbour pairs of ``‖Δυ‖²/σ_t² + ‖Δω‖²/σ_r²`` (a 0-dim tensor; 0 for one camera).
+
+    With corrections about the optical centres, ``V_i' V_j'⁻¹ = exp(ξ_i) (V_i V_j⁻¹) exp(−ξ_j)``: for neighbours
+    (a small relative motion) equal corrections keep the relative motion, so ``Δξ`` measures how far the corrected
+    trajectory leaves the odometry's frame-to-frame motion.
+    """
+    if twists.shape[0] < 2:
+        return twists.new_zeros(())
+    d = twists[1:] - twists[:-1]
+    return ((d[:, :3] ** 2).sum(-1) / sigma[0] ** 2 + (d[:, 3:] ** 2).sum(-1) / sigma[1] ** 2).mean()
+
+
 def pose_errors(viewmats: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-camera rotation error (degrees, geodesic angle of ``R Rᵣᵀ``, from the chordal distance) and translation error
     (distance between optical centres, world units) of ``viewmats [B,4,4]`` against ``reference``.
