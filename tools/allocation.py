@@ -92,7 +92,8 @@ def build_reconstruct(cfg: Any) -> tuple[Models, list[str]]:
 
 def build_refine(cfg: Any) -> tuple[Models, list[str]]:
     """The refiner (scene, shading, camera corrections) over placeholder frames (1×1 images)."""
-    count = cfg.data.room.frames if cfg.data.source == "room" else max(1, cfg.data.nerf.limit)
+    d = cfg.data
+    count = {"room": d.room.frames, "nerf": max(1, d.nerf.limit), "rgbd": max(1, d.rgbd.limit)}[d.source]
     C = cfg.scene.channels
     frames = PosedViews(images=torch.zeros(count, 1, 1, C), viewmats=torch.eye(4).expand(count, 4, 4).clone(),
                         Ks=torch.eye(3).expand(count, 3, 3).clone(), names=[str(i) for i in range(count)],

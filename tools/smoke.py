@@ -35,9 +35,11 @@ SMOKE: dict[str, list[str]] = {
     "benchmarks.gpu_lego": ["--device", "cpu", "--quick"],
     "benchmarks.gt_views": ["--smoke"],
     "benchmarks.refine_memory": ["--smoke"],
+    "benchmarks.refine_tum": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
-NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds"}
+NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds",
+              "benchmarks.refine_tum": "rgbd/tum_fr1_rpy_50"}
 #: Seconds one smoke command may take.
 TIMEOUT_S = 120
 

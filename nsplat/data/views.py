@@ -21,6 +21,7 @@ class PosedViews:
         viewmats_gt: ``[B,4,4]`` ground-truth poses when ``viewmats`` are perturbed, else ``None``.
         background: ``[C]`` colour composited under RGBA images, else ``None``.
         depths: ``[B,H,W]`` float32 sensor depth (camera z, metres; 0 where none) of RGB-D frames, else ``None``.
+        times: ``[B]`` float64 capture times in seconds (a sequence's timestamps), else ``None``.
     """
 
     images: torch.Tensor
@@ -31,6 +32,7 @@ class PosedViews:
     viewmats_gt: torch.Tensor | None = None
     background: torch.Tensor | None = None
     depths: torch.Tensor | None = None
+    times: torch.Tensor | None = None
 
     @property
     def width(self) -> int:
@@ -53,7 +55,7 @@ class PosedViews:
     def subset(self, index: Sequence[int] | torch.Tensor) -> "PosedViews":
         """The views ``index`` (in that order); ``background`` is shared."""
         idx = torch.as_tensor(index, dtype=torch.long)
-        pick = {f: getattr(self, f) for f in ("images", "viewmats", "Ks", "masks", "viewmats_gt", "depths")}
+        pick = {f: getattr(self, f) for f in ("images", "viewmats", "Ks", "masks", "viewmats_gt", "depths", "times")}
         out = {k: (None if v is None else v[idx.to(v.device)]) for k, v in pick.items()}
         return dataclasses.replace(self, names=[self.names[i] for i in idx.tolist()], **out)
 

@@ -25,7 +25,7 @@ from nsplat.tasks.refine.filtering import improbable, point_errors
 from nsplat.tasks.refine.metrics import evaluate_state
 from nsplat.tasks.refine.model import Refiner, refiner_view
 from nsplat.tasks.refine.optimisers import active_groups, depth_l1, masked_l1, optimizers, set_lr, step_active
-from nsplat.tasks.refine.poses import odometry_prior, pose_errors
+from nsplat.tasks.refine.poses import motion_prior, odometry_prior, pose_errors
 from nsplat.tasks.refine.sequence import (
     fit_heldout,
     frame_metrics,
@@ -126,8 +126,10 @@ def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
         dloss = depth_l1(depth, alpha, fr.depths[idx], mask)
         total = loss + cfg.depth_loss * dloss
     if cfg.poses.odometry_weight > 0 and model.cameras is not None and model.cameras.twist is not None:
-        total = total + cfg.poses.odometry_weight * odometry_prior(model.cameras.twist * model.cameras.pose_mask,
-                                                                   cfg.poses.odometry_sigma)
+        total = total + cfg.poses.odometry_weight * odometry_prior(model.cameras.delta(), cfg.poses.odometry_sigma)
+    if cfg.poses.motion_weight > 0 and fr.times is not None and model.cameras is not None:
+        V_all, _ = model.camera(torch.arange(len(fr), device=device))
+        total = total + cfg.poses.motion_weight * motion_prior(V_all, fr.times, cfg.poses.motion_sigma)
     total.backward()
     step_active(opts, active)
     done = k + 1

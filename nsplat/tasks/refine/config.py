@@ -151,10 +151,15 @@ class PoseConfig:
             optical axis; decouples rotation from translation, see :mod:`nsplat.tasks.refine.poses`) or
             ``centre`` (the optical centre).
         odometry_weight: weight of the odometry prior of a sequence (0: none): the mean over consecutive training
-            frames of ``‖Δυ‖²/σ_t² + ‖Δω‖²/σ_r²``, ``Δ`` the difference of their corrections (camera-frame twists,
-            ``pivot: centre``): the trajectory's frame-to-frame motion is trusted to ``odometry_sigma`` and its drift
-            is what the images correct (an odometry edge of a pose graph).
+            frames of ``(‖Δt‖/σ_t)² + (‖ΔR‖_F/√2/σ_r)²``, ``Δ`` the difference of their corrections
+            (:func:`nsplat.tasks.refine.poses.odometry_prior`): the trajectory's frame-to-frame motion is trusted to
+            ``odometry_sigma`` and its drift is what the images correct (an odometry edge of a pose graph).
         odometry_sigma: ``[σ_t metres, σ_r radians]`` of that prior.
+        motion_weight: weight of the smooth-motion prior of a sequence with timestamps (0: none): the mean squared
+            acceleration of the optical centres over ``motion_sigma²`` (m/s², :func:`nsplat.tasks.refine.poses.
+            motion_prior`), over the training cameras in time order, and over the whole trajectory when the held-out
+            cameras are fitted.
+        motion_sigma: the acceleration (m/s²) the prior expects of the camera.
     """
 
     learn: bool = True
@@ -164,14 +169,13 @@ class PoseConfig:
     pivot: Literal["scene", "centre"] = "centre"
     odometry_weight: float = 0.0
     odometry_sigma: list[float] = dataclasses.field(default_factory=lambda: [0.005, 0.01])
+    motion_weight: float = 0.0
+    motion_sigma: float = 0.5
 
     def __post_init__(self) -> None:
-        require_fields(self, frozen=">=0", odometry_weight=">=0")
+        require_fields(self, frozen=">=0", odometry_weight=">=0", motion_weight=">=0", motion_sigma=">0")
         require(len(self.odometry_sigma) == 2 and min(self.odometry_sigma) > 0, "odometry_sigma",
                 "[σ_t, σ_r] > 0", self.odometry_sigma)
-        require(self.odometry_weight == 0 or self.pivot == "centre", "odometry_weight",
-                "0 unless pivot is 'centre' (the prior compares camera-frame twists about the optical centres)",
-                self.odometry_weight)
 
 
 @dataclasses.dataclass

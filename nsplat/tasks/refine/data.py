@@ -66,7 +66,7 @@ def _views(seq: RGBDSequence, valid: str) -> PosedViews:
     mask = seq.valid & (seq.depths > 0) if valid == "depth" else seq.valid.clone()
     gt = None if seq.c2w_gt is None else torch.linalg.inv(seq.c2w_gt).float()
     return PosedViews(seq.images, torch.linalg.inv(seq.c2w).float(), seq.Ks, list(seq.names), masks=mask,
-                      viewmats_gt=gt, depths=seq.depths)
+                      viewmats_gt=gt, depths=seq.depths, times=seq.timestamps)
 
 
 def _slam_cloud(path: Path, cfg: Config) -> SurfelScene:

@@ -22,6 +22,7 @@ from typing import Any, Iterator
 
 import numpy as np
 import torch
+from kornia.geometry.liegroup import Se3
 from tqdm import tqdm
 
 from nsplat.comparison_sheet import write_sheet
@@ -33,6 +34,7 @@ from nsplat.tasks.refine.data import Sequence
 from nsplat.tasks.refine.metrics import image_metrics
 from nsplat.tasks.refine.model import Refiner
 from nsplat.tasks.refine.optimisers import depth_l1, masked_l1
+from nsplat.tasks.refine.poses import motion_prior
 from nsplat.tasks.refine.trajectory import ate, rpe
 from nsplat.video import to_uint8, write_video
 
@@ -83,30 +85,43 @@ def heldout_refiner(model: Refiner, views: PosedViews, seq: Sequence | None = No
     camera corrections and exposures and no anchor.
 
     With ``seq`` each held-out frame starts from the refined trajectory: its correction (and exposure) is the
-    mean of its nearest training frames' before and after it in time (corrections about the optical centre are
-    nearly equal for neighbouring frames, :func:`nsplat.tasks.refine.poses.odometry_prior`); without, from the
-    identity (the trajectory's own pose).
+    mean (:func:`mean_rigid`) of its nearest training frames' before and after it in time (corrections are
+    nearly equal for neighbouring frames, :func:`nsplat.tasks.refine.poses.odometry_prior`), as a twist about
+    its optical centre; without, from the identity (the trajectory's own pose).
     """
     held = Refiner(model.cfg, model.scene, views, anchor=False).to(views.images.device)
     held.sh = model.sh
     if seq is None:
         return held
     train = torch.tensor(seq.train)
-    pairs = []
+    rows = []
     for h in seq.heldout:
         before, after = train[train < h], train[train > h]
-        pairs.append([int(x) for x in (before[-1:].tolist() + after[:1].tolist())])
-    rows = [[seq.train.index(i) for i in p] for p in pairs]
+        rows.append([seq.train.index(int(i)) for i in before[-1:].tolist() + after[:1].tolist()])
     with torch.no_grad():
-        if held.cameras is not None and held.cameras.twist is not None and model.cameras.pivots is None:
-            tw = model.cameras.twist * model.cameras.pose_mask
-            held.cameras.twist.copy_(torch.stack([tw[r].mean(0) for r in rows]))
+        if held.cameras is not None and held.cameras.twist is not None and model.cameras.twist is not None:
+            held.cameras.pivots = None  # the correction's twist about the optical centre
+            D = model.cameras.delta()
+            target = torch.stack([mean_rigid(D[r]) for r in rows])
+            held.cameras.twist.copy_(Se3.from_matrix(target.double()).log().float())
         if held.exposure is not None and model.exposure is not None:
             m = model.exposure.mask
             for name in ("log_gain", "bias"):
                 src = getattr(model.exposure, name) * m
                 getattr(held.exposure, name).copy_(torch.stack([src[r].mean(0) for r in rows]))
     return held
+
+
+def mean_rigid(T: torch.Tensor) -> torch.Tensor:
+    """The mean of rigid transforms ``T [k,4,4]``: the chordal mean rotation (the projection of their sum onto
+    SO(3)) and the mean translation, ``[4,4]``."""
+    U, _, Vt = torch.linalg.svd(T[:, :3, :3].double().sum(0))
+    d = torch.ones(3, dtype=U.dtype)
+    d[-1] = torch.sign(torch.det(U @ Vt))
+    out = torch.eye(4, dtype=T.dtype)
+    out[:3, :3] = (U * d) @ Vt
+    out[:3, 3] = T[:, :3, 3].mean(0)
+    return out
 
 
 def fit_heldout(model: Refiner, views: PosedViews, cfg: Config, seed: int, seq: Sequence,
@@ -141,8 +156,23 @@ def fit_heldout(model: Refiner, views: PosedViews, cfg: Config, seed: int, seq: 
                 if cfg.depth_loss > 0 and fr.depths is not None:
                     loss = loss + cfg.depth_loss * depth_l1(depth, alpha, fr.depths[idx], mask)
                 loss.backward()
+            if cfg.poses.motion_weight > 0 and held.cameras is not None:
+                (cfg.poses.motion_weight * motion_prior(timeline(model, held, seq), seq.timestamps,
+                                                        cfg.poses.motion_sigma)).backward()
             opt.step()
     return held
+
+
+def timeline(train: Refiner, held: Refiner, seq: Sequence) -> torch.Tensor:
+    """World → camera ``[F,4,4]`` of every frame in time order: the training cameras (detached) and the held-out
+    ones (differentiable)."""
+    dev = train.frames.images.device
+    with torch.no_grad():
+        Vt, _ = train.camera(torch.arange(len(train.frames), device=dev))
+    Vh, _ = held.camera(torch.arange(len(held.frames), device=dev))
+    out = Vt.new_zeros(len(seq.train) + len(seq.heldout), 4, 4)
+    out = out.index_put((torch.tensor(seq.train, device=dev),), Vt)
+    return out.index_put((torch.tensor(seq.heldout, device=dev),), Vh)
 
 
 @torch.no_grad()
