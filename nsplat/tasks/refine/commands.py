@@ -106,6 +106,28 @@ def restore_data(cfg: Config, ctx: RunContext) -> tuple[Refiner, int, RefineData
     return t.modules["model"], t.load(payload), data
 
 
+def _loss(cfg: Config, model: Refiner, idx: torch.Tensor, seed: int) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of a step on cameras ``idx``: the masked L1 image loss, with the depth term and the pose priors the
+    config asks for; and its scalars for the log."""
+    fr = model.frames
+    img, alpha, depth = model(idx, seed=seed, with_depth=True)
+    mask = fr.masks[idx] if cfg.mask_loss else torch.ones_like(fr.masks[idx])
+    if cfg.coverage_mask > 0:
+        mask = mask & (alpha.detach()[..., 0] >= cfg.coverage_mask)
+    l1 = masked_l1(img, fr.images[idx], mask)
+    total, scalars = l1, {"loss/l1": float(l1.detach())}
+    if cfg.depth_loss > 0 and fr.depths is not None:
+        d = depth_l1(depth, alpha, fr.depths[idx], mask)
+        total, scalars["loss/depth"] = total + cfg.depth_loss * d, float(d.detach())
+    p, cams = cfg.poses, model.cameras
+    if p.odometry_weight > 0 and cams is not None and cams.twist is not None:
+        total = total + p.odometry_weight * odometry_prior(cams.delta(), p.odometry_sigma)
+    if p.motion_weight > 0 and fr.times is not None and cams is not None:
+        V, _ = model.camera(torch.arange(len(fr), device=idx.device))
+        total = total + p.motion_weight * motion_prior(V, fr.times, p.motion_sigma)
+    return total, scalars
+
+
 def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
     """The task contract's ``step``: one masked-L1 step of the active groups (then the outlier filter)."""
     model, opts = t.modules["model"], t.optimizers
@@ -116,21 +138,8 @@ def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
     active = active_groups(cfg, k)
     for opt in opts.values():
         opt.zero_grad(set_to_none=True)
-    img, alpha, depth = model(idx, seed=op_seed(seed, "train", k), with_depth=True)
-    mask = fr.masks[idx] if cfg.mask_loss else torch.ones_like(fr.masks[idx])
-    if cfg.coverage_mask > 0:
-        mask = mask & (alpha.detach()[..., 0] >= cfg.coverage_mask)
-    loss = masked_l1(img, fr.images[idx], mask)
-    total = loss
-    if cfg.depth_loss > 0 and fr.depths is not None:
-        dloss = depth_l1(depth, alpha, fr.depths[idx], mask)
-        total = loss + cfg.depth_loss * dloss
-    if cfg.poses.odometry_weight > 0 and model.cameras is not None and model.cameras.twist is not None:
-        total = total + cfg.poses.odometry_weight * odometry_prior(model.cameras.delta(), cfg.poses.odometry_sigma)
-    if cfg.poses.motion_weight > 0 and fr.times is not None and model.cameras is not None:
-        V_all, _ = model.camera(torch.arange(len(fr), device=device))
-        total = total + cfg.poses.motion_weight * motion_prior(V_all, fr.times, cfg.poses.motion_sigma)
-    total.backward()
+    loss, scalars = _loss(cfg, model, idx, op_seed(seed, "train", k))
+    loss.backward()
     step_active(opts, active)
     done = k + 1
     if cfg.filter.due(done):
@@ -140,9 +149,7 @@ def step(cfg: Config, t: Trainables, seed: int, k: int) -> dict[str, float]:
             t.extra["removed"] = int(t.extra.get("removed", 0)) + int(bad.sum())
             log.info("step %d: outlier filter removed %d points (%d left)", done, int(bad.sum()),
                      model.scene.num_points)
-    out = {"loss/l1": float(loss.detach()), "scene/points": float(model.scene.num_points)}
-    if cfg.depth_loss > 0 and fr.depths is not None:
-        out["loss/depth"] = float(dloss.detach())
+    out = {**scalars, "scene/points": float(model.scene.num_points)}
     if fr.viewmats_gt is not None:
         with torch.no_grad():
             V, _ = model.camera(torch.arange(len(fr), device=device))
