@@ -1,6 +1,7 @@
 """The real data sets, where they are installed (``$NSPLAT_DATA``; a user's clone has none until
 ``nsplat data fetch`` brings them): the lego scene that configs/lego.yaml reads, the four DSS point
-clouds of Table 1 and the TUM RGB-D sequence of configs/refine_tum.yaml load through the same code as the tasks. Every other test makes its own small
+clouds of Table 1 and the TUM RGB-D sequence of configs/refine_tum.yaml load through the same code as the
+tasks. Every other test makes its own small
 fixtures; these are the only tests that skip, and their reason names the command that fetches the data."""
 from __future__ import annotations
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 from nsplat.config import ConfigError, require, require_fields
@@ -92,6 +93,11 @@ class RGBDSource:
                        holdout_every=">=0")
         require(len(self.depth_range) == 2 and 0 <= self.depth_range[0] < self.depth_range[1], "depth_range",
                 "[min, max] metres with 0 <= min < max", self.depth_range)
+        require(not self.intrinsics or (len(self.intrinsics) == 4 and all(math.isfinite(v) for v in self.intrinsics)
+                                        and min(self.intrinsics[:2]) > 0), "intrinsics",
+                "[] (a camera preset) or [fx, fy, cx, cy] with fx, fy > 0", self.intrinsics)
+        require(not self.distortion or (len(self.distortion) == 5 and all(math.isfinite(v) for v in self.distortion)),
+                "distortion", "[] or [k1, k2, p1, p2, k3]", self.distortion)
         require(self.holdout_every != 1, "holdout_every", "0 (none) or >= 2 (1 would hold out every frame)",
                 self.holdout_every)
 
