@@ -22,6 +22,7 @@ from nsplat.tasks.refine.data import load_data
 from nsplat.tasks.refine.exposure import Exposure
 from nsplat.tasks.refine.trajectory import ate
 from tests.rgbd_scene import write_sequence
+from tests.test_command_errors import _one_line_error
 
 
 @pytest.fixture(scope="module")
@@ -124,14 +125,6 @@ def test_slam_cloud_ply(sequence, tmp_path):
     assert torch.allclose(scene.features[:, 0], torch.ones(n))
 
 
-def _one_line(capsys, argv: list[str], *needles: str) -> None:
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1, err
-    for needle in needles:
-        assert needle in err, (needle, err)
-
-
 def test_bad_input_one_line_exit_2(sequence, tmp_path, capsys):
     """Missing frames, a trajectory covering too few frames, no pairs within the tolerance, an implausible depth
     scale and a PLY without positions: exit 2, one line naming the file or setting, no run folder left."""
@@ -145,16 +138,17 @@ def test_bad_input_one_line_exit_2(sequence, tmp_path, capsys):
     broken.mkdir()
     for name in ("rgb.txt", "depth.txt", "odometry.txt", "groundtruth.txt"):
         (broken / name).write_text((src / name).read_text())
-    _one_line(capsys, ["--config", cfg(**{"data.rgbd.root": str(broken)}), "--run", str(run)], "missing colour frame")
+    _one_line_error(capsys, ["--config", cfg(**{"data.rgbd.root": str(broken)}), "--run", str(run)],
+                    "missing colour frame")
     short = tmp_path / "short.txt"
     short.write_text("\n".join((src / "odometry.txt").read_text().splitlines()[:4]) + "\n")
-    _one_line(capsys, ["--config", cfg(**{"data.rgbd.trajectory": str(short)}), "--run", str(run)],
+    _one_line_error(capsys, ["--config", cfg(**{"data.rgbd.trajectory": str(short)}), "--run", str(run)],
               "covers 2 of 10", "need at least 3")
-    _one_line(capsys, ["--config", cfg(**{"data.rgbd.max_dt": 0.001}), "--run", str(run)], "max_dt")
-    _one_line(capsys, ["--config", cfg(**{"data.rgbd.depth_scale": 5.0}), "--run", str(run)], "depth_scale")
+    _one_line_error(capsys, ["--config", cfg(**{"data.rgbd.max_dt": 0.001}), "--run", str(run)], "max_dt")
+    _one_line_error(capsys, ["--config", cfg(**{"data.rgbd.depth_scale": 5.0}), "--run", str(run)], "depth_scale")
     arr = np.zeros(3, dtype=[("a", "f4")])
     PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "nopos.ply"))
-    _one_line(capsys, ["--config", cfg(**{"data.rgbd.cloud": str(tmp_path / "nopos.ply")}), "--run", str(run)],
+    _one_line_error(capsys, ["--config", cfg(**{"data.rgbd.cloud": str(tmp_path / "nopos.ply")}), "--run", str(run)],
               "nopos.ply", "x y z")
     assert not run.exists()
 
