@@ -2,7 +2,10 @@
 # Compile-only check of the CUDA backend (no GPU, no linking): nvcc compiles ops/csrc/cuda/*_cuda.cu and
 # the host compiler compiles ops/csrc/cuda/bindings.cpp to object files against this torch's headers and the
 # CUDA toolkit's. Works with a CPU-only torch wheel (its include/ tree carries the ATen/c10 CUDA headers the
-# kernels file uses). What it does NOT check: linking against libtorch_cuda/libcudart, and running anything.
+# kernels file uses). ptxas reports each kernel's registers, stack and spills (-Xptxas -v); the check fails when a
+# kernel's stack exceeds its budget or a kernel that must not spill does (ops/kernel_resources.py: sample_kernel and
+# merge_prepare_kernel <= 1 KiB, no spills). nvcc gets the extension's own flags (ops/build.py CUDA_CFLAGS:
+# --fmad=false). What it does NOT check: linking against libtorch_cuda/libcudart, and running anything.
 # Usage: bash .ci/cuda_compile_check.sh   (NVCC, CXX, CUDA_ARCH and PYTHON override the defaults)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -41,17 +44,24 @@ if [ ! -f "$TORCH_ROOT_INC/c10/cuda/impl/cuda_cmake_macros.h" ]; then
 fi
 
 echo "cuda_compile_check: $("$NVCC" --version | tail -1) (sm_$ARCH), CUDA_HOME=$CUDA_HOME"
-# Same flags as torch.utils.cpp_extension gives nvcc, plus the extension's own (ops/build.py).
+# Same flags as torch.utils.cpp_extension gives nvcc, plus the extension's own (ops/build.py CUDA_CFLAGS).
+read -r -a OWN_FLAGS < <("$PYTHON" -c "from nsplat.ops.build import CUDA_CFLAGS; print(' '.join(CUDA_CFLAGS))")
 NVCC_PIDS=()
 for kernels in splat_cuda projection_cuda; do
-  "$NVCC" -c "ops/csrc/cuda/$kernels.cu" -o "$OUTDIR/$kernels.o" -std="$STD" -O3 -lineinfo \
+  "$NVCC" -c "ops/csrc/cuda/$kernels.cu" -o "$OUTDIR/$kernels.o" -std="$STD" "${OWN_FLAGS[@]}" \
     -gencode=arch=compute_$ARCH,code=sm_$ARCH --expt-relaxed-constexpr --compiler-options '-fPIC' \
     -D__CUDA_NO_HALF_OPERATORS__ -D__CUDA_NO_HALF_CONVERSIONS__ -D__CUDA_NO_BFLOAT16_CONVERSIONS__ \
     -D__CUDA_NO_HALF2_OPERATORS__ "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}" \
-    -Werror all-warnings -Xcompiler -Wall &
+    -Werror all-warnings -Xcompiler -Wall -Xptxas -v >"$OUTDIR/$kernels.ptxas" 2>&1 &
   NVCC_PIDS+=($!)
 done
 "$CXX" -c ops/csrc/cuda/bindings.cpp -o "$OUTDIR/bindings.o" -std="$STD" -O1 -fPIC -Wall -Werror \
   "${DEFS[@]}" -Iops/csrc "${TORCH_INC[@]}"
-for pid in "${NVCC_PIDS[@]}"; do wait "$pid"; done
+NVCC_RC=0
+for pid in "${NVCC_PIDS[@]}"; do wait "$pid" || NVCC_RC=$?; done
+# ptxas -v reports on stderr as "ptxas info"; anything else there is a diagnostic
+grep -hvE "^ptxas info|bytes stack frame" "$OUTDIR"/*.ptxas || true
+[ "$NVCC_RC" -eq 0 ] || { echo "cuda_compile_check: nvcc failed (rc=$NVCC_RC)" >&2; exit "$NVCC_RC"; }
+echo "cuda_compile_check: per-kernel resources (sm_$ARCH; stack and spills in bytes per thread)"
+cat "$OUTDIR"/*.ptxas | "$PYTHON" -m nsplat.ops.kernel_resources --format ptxas
 echo "cuda_compile_check: OK ($(du -ck "$OUTDIR"/*_cuda.o | tail -1 | cut -f1) KiB kernel objects, bindings object built)"

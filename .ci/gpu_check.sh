@@ -1,8 +1,11 @@
 #!/usr/bin/env bash
 # Everything that needs a GPU, in one call (a lent GPU machine is short-lived and starts bare):
 #   1. builds the CPU and CUDA backends (and, in the background, gsplat's JIT extension when gsplat imports);
-#   2. tests/test_op_cuda.py's GPU tests (-m cuda), while compute-sanitizer memcheck runs every kernel path of
-#      tests/cuda_sanitizer_case.py, then racecheck on one small scene;
+#   2. each kernel's registers, stack and spills (cuobjdump --dump-resource-usage of the built extension; ptxas -v
+#      through .ci/cuda_compile_check.sh when cuobjdump is absent), then the GPU tests of tests/test_op_cuda*.py
+#      (-m cuda), while compute-sanitizer memcheck runs every kernel path of tests/cuda_sanitizer_case.py, then
+#      initcheck on the same paths (reads of uninitialised device memory; PYTORCH_NO_CUDA_MEMORY_CACHING=1 so that
+#      every tensor is its own allocation) and racecheck on one small scene;
 #   3. python -m benchmarks.op_cuda (with gsplat's 2DGS rasteriser when its build succeeded), alone on the machine.
 #   4. (GPU_CHECK_STAGES: "profile") per-kernel GPU time (python -m benchmarks.op_cuda_profile);
 #   5. (GPU_CHECK_STAGES: "train") the README's main job on the GPU (`python train.py --device cuda`);
@@ -76,18 +79,34 @@ echo "cpu build rc=$RC (both built in $((SECONDS - t)) s)"
 TESTS_RC=0
 
 if has tests; then
-  echo "== GPU tests + memcheck ($(left) s left)"
+  echo "== per-kernel registers, stack and spills"
+  CUOBJDUMP=$(command -v cuobjdump || ls /usr/local/cuda*/bin/cuobjdump 2>/dev/null | head -1 || true)
+  SO=$(ls "$NSPLAT_BUILD_DIR"/torch-*/cuda/nsplat_cuda.so 2>/dev/null | head -1 || true)
+  if [ -n "$CUOBJDUMP" ] && [ -n "$SO" ]; then
+    try bash -c "'$CUOBJDUMP' --dump-resource-usage '$SO' | python3 -m nsplat.ops.kernel_resources --format cuobjdump"
+  else
+    try timeout 240 bash .ci/cuda_compile_check.sh
+  fi
+  echo "kernel resources rc=$RC"
+  [ "$RC" -ne 0 ] && TESTS_RC=$RC
+  echo "== GPU tests + memcheck + initcheck ($(left) s left)"
   PT_OPTS=()
   python3 -c "import xdist" 2>/dev/null && PT_OPTS+=(-n 4)
   python3 -c "import pytest_timeout" 2>/dev/null && PT_OPTS+=(--timeout 150)
   SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer /usr/local/cuda*/compute-sanitizer/compute-sanitizer 2>/dev/null | head -1 || true)
   echo "pytest options: ${PT_OPTS[*]:-none}; sanitizer: ${SAN:-not found}"
   t=$SECONDS
-  timeout "$(upto 150)" python3 -m pytest -m cuda tests/test_op_cuda.py -q -p no:cacheprovider "${PT_OPTS[@]}" \
+  timeout "$(upto 150)" python3 -m pytest -m cuda tests/test_op_cuda.py tests/test_op_cuda_paths.py -q \
+    -p no:cacheprovider "${PT_OPTS[@]}" \
     >"$OUT/pytest_cuda.log" 2>&1 &
   PT_PID=$!
   try timeout 150 "${SAN:-compute-sanitizer}" --tool memcheck --error-exitcode 9 python3 tests/cuda_sanitizer_case.py all
   echo "memcheck rc=$RC ($((SECONDS - t)) s)"
+  [ "$RC" -ne 0 ] && TESTS_RC=$RC
+  t2=$SECONDS
+  try env PYTORCH_NO_CUDA_MEMORY_CACHING=1 timeout 150 "${SAN:-compute-sanitizer}" --tool initcheck --error-exitcode 9 \
+    python3 tests/cuda_sanitizer_case.py all
+  echo "initcheck rc=$RC ($((SECONDS - t2)) s)"
   [ "$RC" -ne 0 ] && TESTS_RC=$RC
   t2=$SECONDS
   try timeout 120 "${SAN:-compute-sanitizer}" --tool racecheck --error-exitcode 9 python3 tests/cuda_sanitizer_case.py one

@@ -29,6 +29,10 @@ CUDA_SOURCES = ("bindings.cpp", "splat_cuda.cu", "projection_cuda.cu")
 #: No contraction into FMA: every instruction set computes the same bits (docs/op.md §4). The C++ standard is
 #: added by :func:`cxx_standard`.
 CPU_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")
+#: nvcc with the CPU's floating-point contract: no contraction into FMA (``--fmad=false``; IEEE division and square
+#: root are nvcc's default), so code of +, -, *, / and sqrt alone gives the CPU's bits on a GPU (docs/op.md §4 says
+#: which results that makes equal; exp and log are the device library's and are not).
+CUDA_CFLAGS = ("-O3", "-lineinfo", "--fmad=false")
 #: A build lock older than this is taken to be left by a killed build (a real build takes ~1-3 minutes).
 STALE_LOCK_S = 900
 
@@ -75,7 +79,7 @@ def _load(kind: str) -> ModuleType:
         flags = dict(extra_cflags=[*CPU_CFLAGS, std, tag], extra_ldflags=["-fopenmp"])
     else:
         sources = [str(CSRC / "cuda" / f) for f in CUDA_SOURCES]
-        flags = dict(extra_cflags=["-O3", std, tag], extra_cuda_cflags=["-O3", std, "-lineinfo", tag])
+        flags = dict(extra_cflags=["-O3", std, tag], extra_cuda_cflags=[*CUDA_CFLAGS, std, tag])
     target = build_dir(kind)
     digest = source_hash()
     stamp = target / "source_hash"

@@ -23,6 +23,11 @@ from torch.utils._python_dispatch import TorchDispatchMode
 __all__ = ["HostTraffic", "count_host_traffic", "host_read"]
 
 _COUNTERS: list[HostTraffic] = []
+#: ATen ops that read device values back to the host inside their CUDA kernels (output sizes or ranges that depend on
+#: the data): invisible as ``_local_scalar_dense`` in a dispatch mode, so :class:`_Spy` names them. ``bincount`` reads
+#: its input's min and max; the others size their outputs from the data.
+SYNCING_OPS = frozenset({"bincount", "histc", "nonzero", "unique", "_unique", "_unique2", "unique_consecutive",
+                         "unique_dim", "masked_select", "repeat_interleave", "argwhere"})
 _INSIDE_READ = [0]  # > 0 while host_read copies (its copy is the counted read, not another one)
 
 
@@ -45,8 +50,9 @@ class HostTraffic:
         reads: reads through :func:`host_read` (the value checks).
         native_reads: the native sampler's reads of sizes (the CUDA module's counter).
         other: every other blocking read or host-to-device copy the block's PyTorch code made, one line each
-            (``aten`` op and devices): ``_local_scalar_dense`` (``item``, ``bool``), a copy between devices, or a
-            tensor built from Python data (``lift_fresh``: on a device, a copy from the host).
+            (``aten`` op and devices): ``_local_scalar_dense`` (``item``, ``bool``), a copy between devices, a
+            tensor built from Python data (``lift_fresh``: on a device, a copy from the host), or an op of
+            :data:`SYNCING_OPS` (``bincount``, ``nonzero``, ...: their CUDA kernels read values back).
     """
 
     reads: int = 0
@@ -73,6 +79,8 @@ class _Spy(TorchDispatchMode):
         name = str(func.overloadpacket.__name__)
         if name in ("_local_scalar_dense", "lift_fresh", "lift_fresh_copy"):
             self.traffic.other.append(name)
+        elif name in SYNCING_OPS:
+            self.traffic.other.append(f"{name} (reads device values back on CUDA)")
         elif name in ("_to_copy", "copy_"):
             src = args[1] if name == "copy_" else args[0]
             dst = kwargs.get("device") if name == "_to_copy" else args[0].device

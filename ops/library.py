@@ -297,13 +297,14 @@ torch.library.register_autograd("nsplat::project_backward", _no_double_backward_
 
 
 # ----------------------------------------------------------------------------------------------------------
-# View-dependent colour (nsplat/sh.py::view_colour_torch is its reference and the path of devices without a kernel)
+# View-dependent colour (nsplat/render/sh.py::view_colour_torch is its reference and the path of devices without a
+# kernel)
 
 
 @torch.library.custom_op("nsplat::view_colour", mutates_args=(), device_types=("cpu", "cuda"))
 def view_colour_op(features: Tensor, means: Tensor, viewmat: Tensor, degree: int) -> Tensor:
     """RGB ``[N,3]`` of points with SH colour ``features [N, 3·(L+1)²]`` (L = ``degree``, 1..3) seen from
-    ``viewmat [4,4]`` (the model of :func:`nsplat.sh.view_colour`)."""
+    ``viewmat [4,4]`` (the model of :func:`nsplat.render.sh.view_colour`)."""
     return native(means.device.type).module.view_colour_forward(*_contiguous(features, means, viewmat), degree)
 
 
@@ -338,7 +339,7 @@ def _backward_view_colour(ctx, g_out):  # noqa: ANN001
 
 def _no_double_backward_view_colour(ctx, *grads):  # noqa: ANN001
     raise RuntimeError("nsplat::view_colour_backward: double backward through the native view colour is not "
-                       "supported; nsplat.sh.view_colour_torch (pure PyTorch, same model) supports it.")
+                       "supported; nsplat.render.sh.view_colour_torch (pure PyTorch, same model) supports it.")
 
 
 torch.library.register_autograd("nsplat::view_colour", _backward_view_colour, setup_context=_setup_view_colour)
@@ -386,9 +387,11 @@ def _entries_by_point_sorted(indices: Tensor, N: int, chunk: int | None = None) 
         keys, entries = torch.sort(torch.where(flat >= 0, flat, N), stable=True)
         return entries, torch.searchsorted(keys, bounds)
     counts = torch.zeros(N + 1, dtype=torch.int64, device=dev)  # slots per key (N: the empty ones)
+    one = counts.new_ones(())
     for start in range(0, total, chunk):
         part = flat[start:start + chunk]
-        counts += torch.bincount(torch.where(part >= 0, part, N), minlength=N + 1)
+        # not torch.bincount: on CUDA it reads the keys' min and max back to the host (a synchronisation a run)
+        counts.index_add_(0, torch.where(part >= 0, part, N), one.expand(part.numel()))
     seg = torch.zeros(N + 1, dtype=torch.int64, device=dev)
     seg[1:] = torch.cumsum(counts[:-1], 0)
     before = torch.zeros(N + 1, dtype=torch.int64, device=dev)  # each key's slots in the earlier runs

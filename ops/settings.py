@@ -1,7 +1,7 @@
 """The op's settings as one value: :class:`SplatSettings`.
 
 :class:`nsplat.ops.Splatter` holds one, and the framework's render gateway builds one from its
-:class:`nsplat.render.RenderConfig` (whose op fields are exactly these, with these defaults), so the
+:class:`nsplat.render.renderer.RenderConfig` (whose op fields are exactly these, with these defaults), so the
 settings of :func:`nsplat.ops.splat` are defined, defaulted and validated in this one place.
 """
 from __future__ import annotations

@@ -5,7 +5,8 @@
 with the op's compositor. Its cost is pixels × (splats that reach a pixel) instead of pixels × points, and it
 differs from the dense oracle by at most the cut tails: each splat's alpha changes by at most ``tol`` times its
 amplitude, so an image with ``k`` splats in reach of a pixel moves by at most about ``k·tol`` times the feature
-scale there. Made for ground-truth images (:mod:`nsplat.data.dss`) and held-out renders; not differentiable.
+scale there. Made for ground-truth images (:mod:`nsplat.tasks.reconstruct_views`) and held-out renders; not
+differentiable.
 
 The CPU runs it natively (``csrc/cpu/tiled_cpu.cpp``: splats binned into 16×16 tiles, per-pixel sort); other
 devices run :func:`splat_tiled_torch`, the same model in PyTorch (pairs of pixel and splat, one sort), which

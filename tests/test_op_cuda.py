@@ -324,23 +324,35 @@ def _check_large_m(device, W, H, m_big, with_backward):
         assert torch.equal(a, b)
 
 
+def large_m_bytes(W: int, H: int, m: int, backward: bool) -> int:
+    """GPU memory the large-m run allocates at its peak (the m = 8 run is negligible beside it), with a 10 % margin for
+    the allocator's rounding: per slot the sample (int32 index, float32 pi: 8 bytes) and the sampler's heap scratch
+    (float64 key, int32 id: 12 bytes) during sampling; with the backward, the sample, its two float32 per-slot
+    derivatives (8), the entry sort's int32 keys, sorted keys and int64 order and entries (24): 40 bytes."""
+    per_slot = 40 if backward else 8 + 12
+    return int(1.1 * W * H * m * per_slot)
+
+
 @cuda_test
 def test_slot_offsets_beyond_2_31():
     """B·H·W·m > 2^31: the sample, the forward and the backward of a 2048² image with m = 513 equal those of
     m = 8 on the same scene (6 points, so both samples hold every point; slots 8.. must be empty).
 
-    Needs about 36 GB of free GPU memory for the forward and 80 GB with the backward (the Python-side entry
-    sort materialises int64 copies of the slots); the backward part is skipped below that."""
+    Skips unless the GPU has the memory the run allocates (large_m_bytes: about 47 GB for the forward, 95 GB with the
+    backward); the backward part is skipped when only the forward fits."""
     W = H = 2048
     m_big = 513
     assert W * H * m_big > 2**31
     free, _ = torch.cuda.mem_get_info()
-    if free < 40e9:
-        pytest.skip(f"needs ~40 GB of free GPU memory, {free / 1e9:.0f} GB free")
-    with_backward = free >= 90e9
+    need = large_m_bytes(W, H, m_big, backward=False)
+    if free < need:
+        pytest.skip(f"needs {need / 1e9:.0f} GB of free GPU memory, {free / 1e9:.0f} GB free")
+    need_backward = large_m_bytes(W, H, m_big, backward=True)
+    with_backward = free >= need_backward
     _check_large_m(CUDA, W, H, m_big, with_backward)
     if not with_backward:
-        pytest.skip(f"forward checked; backward needs ~90 GB of free GPU memory, {free / 1e9:.0f} GB free")
+        pytest.skip(f"forward checked; the backward needs {need_backward / 1e9:.0f} GB of free GPU memory, "
+                    f"{free / 1e9:.0f} GB free")
 
 
 @cuda_test
@@ -729,7 +741,7 @@ def _view_colour_inputs(degree: int, dtype: torch.dtype, N: int = 1100) -> list[
 
 
 def _view_colour_run(x: list[torch.Tensor]) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-    from nsplat.sh import view_colour
+    from nsplat.render.sh import view_colour
 
     leaves = [t.detach().clone().requires_grad_() for t in x]
     out = view_colour(*leaves)
@@ -774,7 +786,7 @@ def test_emulated_cuda_projection_matches_reference_float64(emulated, monkeypatc
 def test_emulated_cuda_view_colour_equals_cpu_and_reference(emulated, monkeypatch, dtype, degree):
     """The view colour's CUDA launch code gives the CPU backend's bits; in float64 it matches autograd through
     ``view_colour_torch``."""
-    from nsplat.sh import view_colour_torch
+    from nsplat.render.sh import view_colour_torch
 
     x = _view_colour_inputs(degree, dtype)
     ref = _view_colour_run(x)
@@ -785,7 +797,7 @@ def test_emulated_cuda_view_colour_equals_cpu_and_reference(emulated, monkeypatc
     for name, a, b in zip(("rgb", "features", "means", "viewmat"), [got[0], *got[1]], [ref[0], *ref[1]]):
         assert torch.equal(a, b), name
     if dtype == torch.float64:
-        monkeypatch.setattr("nsplat.sh.view_colour", view_colour_torch)
+        monkeypatch.setattr("nsplat.render.sh.view_colour", view_colour_torch)
         torch_ref = _view_colour_run(x)
         for name, a, b in zip(("rgb", "features", "means", "viewmat"), [got[0], *got[1]],
                               [torch_ref[0], *torch_ref[1]]):

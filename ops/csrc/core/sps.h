@@ -207,24 +207,77 @@ NS_HD void offer_point(const TreeView& T, int s, double u, double v, const Draw&
 // the rest for the caller's pending mass (tile.h).
 constexpr double kDfsShare = 0.5;
 
+// The depth-first stack holds node ids (kStackSize of them); their bounds are kept for the top kBoundRing entries
+// only, in a ring indexed by stack position (a GPU thread's stack stays small). An entry that a deeper push has
+// evicted from the ring gets its bound recomputed when it is popped: node_bound is a function of the node and the
+// pixel, so the search takes the same steps, bit for bit, as one that kept every bound.
+constexpr int kBoundRing = 4;  // a power of two
+static_assert((kBoundRing & (kBoundRing - 1)) == 0, "kBoundRing must be a power of two");
+
+// Bounds of the ring: entry at stack position p in slot p % kBoundRing, valid for positions >= `from`.
+struct BoundRing {
+  double lub[kBoundRing], est[kBoundRing];
+  int from;
+};
+
+// Records the bounds of the entry pushed at stack position p (evicting position p - kBoundRing).
+NS_HD void ring_push(BoundRing& R, int p, double lub, double est) {
+  R.lub[p & (kBoundRing - 1)] = lub;
+  R.est[p & (kBoundRing - 1)] = est;
+  R.from = imax(imin(R.from, p), p - kBoundRing + 1);
+}
+
+// The bounds of the entry popped from stack position p: from the ring, or recomputed when evicted.
+NS_HD void ring_pop(const BoundRing& R, const TreeView& T, int node, int p, double u, double v, double* lub,
+                    double* est) {
+  if (p >= R.from) {
+    *lub = R.lub[p & (kBoundRing - 1)];
+    *est = R.est[p & (kBoundRing - 1)];
+  } else {
+    node_bound(T, node, u, v, lub, est);
+  }
+}
+
+// A child `ref` of a node being opened: a point (ref < 0) is offered to the sample, a node gets its bound.
+NS_HD void open_child(const TreeView& T, int ref, double u, double v, const Draw& draw, PixelState& S, double* lub,
+                      double* est) {
+  if (ref < 0) {
+    offer_point(T, ~ref, u, v, draw, S);
+    return;
+  }
+  node_bound(T, ref, u, v, lub, est);
+  ++S.nodes;
+}
+
+// Pushes child `ref` with its bounds (points are not pushed: open_child offered them).
+NS_HD void push_node(int* node_st, BoundRing& ring, int& sp, int ref, double lub, double est) {
+  if (ref < 0) return;
+  node_st[sp] = ref;
+  ring_push(ring, sp, lub, est);
+  ++sp;
+}
+
 NS_HD void search_subtree(const TreeView& T, int root, double u, double v, const Draw& draw, PixelState& S) {
   const double log_limit = S.log_eps + log(kDfsShare);
   int node_st[kStackSize];
-  double lub_st[kStackSize], est_st[kStackSize];
-  int sp = 0;
-  node_bound(T, root, u, v, &lub_st[0], &est_st[0]);
+  BoundRing ring;
+  ring.from = 0;
+  double root_lub, root_est;
+  node_bound(T, root, u, v, &root_lub, &root_est);
+  ring_push(ring, 0, root_lub, root_est);
   node_st[0] = root;
   ++S.nodes;
-  ++sp;
+  int sp = 1;
   while (sp > 0) {
     --sp;
-    int node = node_st[sp];
-    double lub = lub_st[sp];
+    const int node = node_st[sp];
+    double lub, est;
+    ring_pop(ring, T, node, sp, u, v, &lub, &est);
     if (S.rest < INFINITY) {
       double lp = log_add_exp(S.log_pruned, lub);
       if (lp + S.rest < log_limit) {
         S.log_pruned = lp;
-        S.pruned_est += est_st[sp];
+        S.pruned_est += est;
         continue;
       }
     }
@@ -233,23 +286,17 @@ NS_HD void search_subtree(const TreeView& T, int root, double u, double v, const
       for (int s = nd.first; s <= nd.last; ++s) offer_point(T, s, u, v, draw, S);
       continue;
     }
-    int child[2] = {nd.left, nd.right};
-    double cl[2], ce[2];
-    for (int c = 0; c < 2; ++c) {
-      if (child[c] < 0) {
-        offer_point(T, ~child[c], u, v, draw, S);
-        cl[c] = -INFINITY;
-      } else {
-        node_bound(T, child[c], u, v, &cl[c], &ce[c]);
-        ++S.nodes;
-      }
-    }
-    // push the smaller bound first so that the larger is visited next
-    int order0 = cl[0] <= cl[1] ? 0 : 1;
-    for (int o = 0; o < 2; ++o) {
-      int c = o == 0 ? order0 : 1 - order0;
-      if (child[c] < 0) continue;
-      node_st[sp] = child[c]; lub_st[sp] = cl[c]; est_st[sp] = ce[c]; ++sp;
+    // the children in order (a point is offered at once); then the smaller bound is pushed first so that the larger
+    // is visited next
+    double left_lub = -INFINITY, left_est = 0.0, right_lub = -INFINITY, right_est = 0.0;
+    open_child(T, nd.left, u, v, draw, S, &left_lub, &left_est);
+    open_child(T, nd.right, u, v, draw, S, &right_lub, &right_est);
+    if (left_lub <= right_lub) {
+      push_node(node_st, ring, sp, nd.left, left_lub, left_est);
+      push_node(node_st, ring, sp, nd.right, right_lub, right_est);
+    } else {
+      push_node(node_st, ring, sp, nd.right, right_lub, right_est);
+      push_node(node_st, ring, sp, nd.left, left_lub, left_est);
     }
   }
 }

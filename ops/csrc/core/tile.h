@@ -302,6 +302,83 @@ struct LaneStats {
   bool floored;    // stopped by the floor test (its pruned mass is outside the eps budget)
 };
 
+// Items i < x of a lane: those with i % lanes == lane.
+NS_HD int lane_items_below(int x, int lane, int lanes) { return x > lane ? (x - lane + lanes - 1) / lanes : 0; }
+
+// A lane's item counts per bin, kept small for a GPU thread's stack: a byte each, saturating at kBinCountMax; a
+// saturated bin is recounted exactly (lane_bin_count) where it is used.
+constexpr int kBinCountMax = 0xFF;
+
+// The lane's items in bin b: its near items whose byte in bin8 is b, and its far items whose tile_bin is b.
+NS_HD int lane_bin_count(const TileItem* items, int n, int n_near, int lane, int lanes, const uint8_t* bin8,
+                         int64_t bin8_stride, int b) {
+  int count = 0;
+  for (int i = lane; i < n_near; i += lanes) count += bin8[i * bin8_stride] == b;
+  for (int i = n_near + (lane - n_near % lanes + lanes) % lanes; i < n && items[i].tile_bin <= b; i += lanes)
+    count += items[i].tile_bin == b;
+  return count;
+}
+
+// The bins of one lane at one pixel (sample_lane): the items' counts per bin and the pending bound masses
+// suffix_b = sum_{b' >= b} count_b' top_b', with top_0 the largest near bound and top_b = top1 kBinStep^b (b >= 1, each
+// product rounded in turn), summed from the last bin in use down. The sums are kept at every kSuffixSegment-th bin
+// (ckpt) and a segment's are recomputed from them when the pixel pass enters it (seg), bit for bit the sums of one
+// pass over all the bins: a GPU thread's stack holds a few hundred bytes instead of arrays of kBins doubles and ints.
+constexpr int kSuffixSegment = 12;
+constexpr int kSuffixSegments = (kBins + kSuffixSegment - 1) / kSuffixSegment;
+
+struct LaneBins {
+  const TileItem* items;
+  const uint8_t* bin8;
+  int64_t bin8_stride;
+  int n, n_near, lane, lanes;
+  int nb;                           // bins in use: every item is in a bin < nb
+  double top0, top1;                // bin 0's top; top1 kBinStep^b is bin b's
+  uint8_t count[kBins];             // the lane's items per bin (saturating at kBinCountMax)
+  double ckpt[kSuffixSegments + 1]; // suffix_(j kSuffixSegment), 0 from nb on
+  double seg[kSuffixSegment];       // suffix_b of the segment last filled
+};
+
+// The lane's items in bin b (exact).
+NS_HD int bin_count(const LaneBins& L, int b) {
+  return L.count[b] != kBinCountMax ? L.count[b]
+                                     : lane_bin_count(L.items, L.n, L.n_near, L.lane, L.lanes, L.bin8, L.bin8_stride, b);
+}
+
+// Fills L.seg with suffix_b of segment j (bins j kSuffixSegment .. of those in use), from ckpt[j + 1].
+NS_HD void fill_suffix_segment(LaneBins& L, int j) {
+  const int lo = j * kSuffixSegment, hi = imin(lo + kSuffixSegment, L.nb);
+  double t = L.top1;
+  for (int b = 1; b <= lo; ++b) t *= kBinStep;
+  for (int b = lo; b < hi; ++b) {
+    if (b > lo) t *= kBinStep;
+    L.seg[b - lo] = b == 0 ? L.top0 : t;
+  }
+  double s = L.ckpt[j + 1];
+  for (int b = hi - 1; b >= lo; --b) {
+    s = s + bin_count(L, b) * L.seg[b - lo];
+    L.seg[b - lo] = s;
+  }
+}
+
+// The checkpoints of the suffix sums, from the last segment in use down (each from the one above it).
+NS_HD void fill_suffix_checkpoints(LaneBins& L) {
+  const int used = (L.nb + kSuffixSegment - 1) / kSuffixSegment;
+  for (int j = used; j <= kSuffixSegments; ++j) L.ckpt[j] = 0.0;
+  for (int j = used - 1; j >= 0; --j) {
+    fill_suffix_segment(L, j);
+    L.ckpt[j] = L.seg[0];
+  }
+}
+
+// suffix_(b + 1), for the pixel pass at bin b (bins in increasing order; it fills each segment on entering it).
+NS_HD double suffix_after(LaneBins& L, int b) {
+  if (b % kSuffixSegment == 0) fill_suffix_segment(L, b / kSuffixSegment);
+  const int next = b + 1;
+  if (next >= L.nb) return 0.0;
+  return next % kSuffixSegment == 0 ? L.ckpt[next / kSuffixSegment] : L.seg[next % kSuffixSegment];
+}
+
 // The SPS search of pixel (u, v) over the items of lane `lane` of `lanes` (items i with i % lanes == lane of the
 // tile's list, arranged by arrange_tile_items: n_near near items first): the pixel pass of the file comment
 // restricted to those items. A lane alone (lanes = 1, log_eps = log eps, floor = kMinTotal) is the whole pixel's
@@ -314,63 +391,62 @@ struct LaneStats {
 // Bin masses need no exp per item: an item of bin b >= 1 has U <= top_b = exp(kBinTop - b kBinWidth), so
 // the pending mass is R = (items left in bin b) top_b + sum_{b' > b} count_b' top_b' (bin 0 uses the largest
 // bound in it). This overestimates the pending mass by less than exp(kBinWidth), with exact integer counts
-// instead of running differences of floating-point sums. The per-bin arrays are few (on a GPU they live in
-// local memory): the bin tops and the bins' first items are recomputed in the loop, bit for bit.
+// instead of running differences of floating-point sums. The per-bin state is LaneBins (a GPU thread's stack): the
+// far items of a bin are found in the tile's list, which holds them sorted by bin, and the suffix sums are kept at
+// checkpoints.
 NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int n_near, double u, double v,
                             const Draw& draw, int m, double log_eps, double floor, int lane, int lanes, double* key,
                             int* idx, int64_t heap_stride, uint8_t* bin8, int64_t bin8_stride) {
   LaneStats out{{0.0, INFINITY, 0, 0, true}, 0.0, 0, false};
-  int near[kBins], far[kBins], far_all[kBins];  // the lane's items per bin; every far item per bin
-  for (int b = 0; b < kBins; ++b) near[b] = far[b] = far_all[b] = 0;
+  LaneBins L;
+  L.items = items;
+  L.bin8 = bin8;
+  L.bin8_stride = bin8_stride;
+  L.n = n;
+  L.n_near = n_near;
+  L.lane = lane;
+  L.lanes = lanes;
+  for (int b = 0; b < kBins; ++b) L.count[b] = 0;
   double lb0 = -INFINITY;  // largest near bound (bin 0's top; far items are never in bin 0)
-  int nb = 0;              // bins in use: every item is in a bin < nb
-  int own = 0;             // the lane's items
+  int nb = n > n_near ? items[n - 1].tile_bin + 1 : 0;  // far items are sorted by bin
+  int own = lane_items_below(n, lane, lanes) - lane_items_below(n_near, lane, lanes);  // the lane's far items
   for (int i = lane; i < n_near; i += lanes, ++own) {
     const double lb = item_log_bound(items[i], u, v);
     const int b = bound_bin(lb);
     lb0 = dmax(lb0, lb);
-    ++near[b];
+    if (L.count[b] != kBinCountMax) ++L.count[b];
     nb = imax(nb, b + 1);
     bin8[i * bin8_stride] = static_cast<uint8_t>(b);
   }
-  for (int i = n_near; i < n; ++i) {
+  for (int i = n_near + (lane - n_near % lanes + lanes) % lanes; i < n; i += lanes) {
     const int b = items[i].tile_bin;
-    ++far_all[b];
-    nb = imax(nb, b + 1);
-    if (i % lanes == lane) {
-      ++far[b];
-      ++own;
-    }
+    if (L.count[b] != kBinCountMax) ++L.count[b];
   }
   out.px.nodes = (n_near - lane + lanes - 1) / lanes;
-  // top_b >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products;
-  // suffix[b] = sum_{b' >= b} count_b' top_b' (filled with the tops first, then summed in place)
-  const double top0 = fast_exp(lb0) * (1.0 + 1e-12), top1 = exp(kBinTop) * (1.0 + 1e-12);
-  double suffix[kBins + 1];
-  double t = top1;
-  if (nb > 0) suffix[0] = top0;
-  for (int b = 1; b < nb; ++b) {
-    t *= kBinStep;
-    suffix[b] = t;
-  }
-  suffix[nb] = 0.0;
-  for (int b = nb - 1; b >= 0; --b) suffix[b] = suffix[b + 1] + (near[b] + far[b]) * suffix[b];
-  if (suffix[0] < floor) {  // certainly below the floor
+  // top_b >= exp(kBinTop - b kBinWidth) by a relative margin that covers the rounding of the products
+  L.nb = nb;
+  L.top0 = fast_exp(lb0) * (1.0 + 1e-12);
+  L.top1 = exp(kBinTop) * (1.0 + 1e-12);
+  fill_suffix_checkpoints(L);
+  if (L.ckpt[0] < floor) {  // certainly below the floor
     out.px.exhaustive = own == 0;
     out.floored = own > 0;
-    out.bound = suffix[0];
+    out.bound = L.ckpt[0];
     return out;
   }
   PixelState S = pixel_state(key, idx, heap_stride, m, log_eps);
   int stop = kGoOn;
   int far_at = n_near;  // bin b's first far item
-  t = top1;
+  double t = L.top1;
   for (int b = 0; b < nb && stop == kGoOn; ++b) {
     if (b > 0) t *= kBinStep;
-    const double top = b == 0 ? top0 : t, rest = suffix[b + 1];
-    int left = near[b] + far[b];  // the lane's items of bin b not yet visited
+    const double top = b == 0 ? L.top0 : t, rest = suffix_after(L, b);
+    int far_end = far_at;  // bin b's far items: [far_at, far_end)
+    while (far_end < n && items[far_end].tile_bin == b) ++far_end;
+    int left = bin_count(L, b);  // the lane's items of bin b not yet visited
+    const int near_b = left - (lane_items_below(far_end, lane, lanes) - lane_items_below(far_at, lane, lanes));
     // near items of bin b, in Morton order
-    for (int i = lane, found = 0; found < near[b] && stop == kGoOn; i += lanes) {
+    for (int i = lane, found = 0; found < near_b && stop == kGoOn; i += lanes) {
       if (bin8[i * bin8_stride] != b) continue;
       ++found;
       stop = stop_before_item(S, left * top + rest, log_eps, floor);
@@ -380,7 +456,7 @@ NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int
       }
     }
     // then its far items
-    for (int i = far_at; i < far_at + far_all[b] && stop == kGoOn; ++i) {
+    for (int i = far_at; i < far_end && stop == kGoOn; ++i) {
       if (i % lanes != lane) continue;
       stop = stop_before_item(S, left * top + rest, log_eps, floor);
       if (stop == kGoOn) {
@@ -388,7 +464,7 @@ NS_HD LaneStats sample_lane(const TreeView& T, const TileItem* items, int n, int
         visit_item(T, items[i], u, v, draw, S);
       }
     }
-    far_at += far_all[b];
+    far_at = far_end;
   }
   out.cnt = S.cnt;
   out.px.total = S.visited + S.pruned_est;

@@ -48,6 +48,10 @@ namespace nsplat {
 namespace {
 
 constexpr int kPixelThreads = 128;  // block size of the per-pixel traversal / compositing kernels
+// Registers of a sample_kernel thread (launched with kPixelThreads): the search and, with one lane, the pixel's
+// finalisation inlined into it need about 167; under __launch_bounds__(kPixelThreads) ptxas capped them at 128 and
+// spilled 384 bytes (.ci/cuda_compile_check.sh checks stack and spills per kernel).
+constexpr int kSampleRegisters = 168;
 constexpr int kReduceBlocks = 256;  // first-stage blocks of the bounding-box reduction
 constexpr int kFeatChunk = 8;       // channels accumulated in registers at once in pass 2
 // Per-pixel item bins of one sampling launch; a build may lower it (the host-emulation tests use 4 KiB, so
@@ -62,6 +66,16 @@ constexpr int64_t kBinScratchBytes = NSPLAT_BIN_SCRATCH_BYTES;
 constexpr int kMaxPixelLanes = 16;
 constexpr int64_t kLaneThreads = int64_t(1) << 18;
 constexpr int64_t kLaneScratchBytes = int64_t(1) << 30;
+
+// A positive integer setting from the environment, else `fallback`: NSPLAT_CUDA_SORT_CAMERAS (cameras of one key sort)
+// and NSPLAT_CUDA_LANE_SCRATCH_BYTES (kLaneScratchBytes) let tests on a GPU take several key sorts and camera groups.
+int64_t env_setting(const char* name, int64_t fallback) {
+  const char* env = std::getenv(name);
+  if (env == nullptr) return fallback;
+  const long long value = std::atoll(env);
+  TORCH_CHECK(value >= 1, name, " must be a positive integer, got '", env, "'");
+  return value;
+}
 
 // The CPU builder's std::min / std::max (NaN never replaces the running value).
 __device__ __forceinline__ double cpu_min(double cur, double x) { return x < cur ? x : cur; }
@@ -316,7 +330,8 @@ void tree_keys(CudaTrees& T, const S* mu, const S* amp, const S* sig2, int64_t B
   // packed keys (morton_kernel) need 32 + nb bits plus the camera's bits
   const int nb = bit_length(N);
   const int64_t per_sort = std::max<int64_t>(
-      1, std::min<int64_t>({B, NSPLAT_SORT_CAMERAS, int64_t(1) << (32 - nb), int64_t(INT32_MAX) / N}));
+      1, std::min<int64_t>({B, env_setting("NSPLAT_CUDA_SORT_CAMERAS", NSPLAT_SORT_CAMERAS), int64_t(1) << (32 - nb),
+                            int64_t(INT32_MAX) / N}));
   at::Tensor raw = at::empty({2, per_sort * N}, i64);
   T.keys = at::empty({B * N}, i64);
   for (int64_t b0 = 0; b0 < B; b0 += per_sort) {
@@ -624,7 +639,7 @@ __device__ __forceinline__ LaneStats search_lane(const PixelPass<S>& pp, const L
 // byte has one writer). With one lane the pixel is finished here; with several each lane leaves its heap and its
 // LaneStats for the merge kernels.
 template <typename S>
-__global__ void __launch_bounds__(kPixelThreads)
+__global__ void __maxnreg__(kSampleRegisters)
     sample_kernel(PixelPass<S> pp, int64_t T0, int64_t T1) {
   const int m = pp.m, lanes = pp.lanes;
   const int64_t P = pp.width * pp.height;
@@ -893,7 +908,8 @@ int pixel_lanes(int64_t P, int64_t m) {
   }
   const int64_t per_lane = std::max<int64_t>(P, 1) * (m * 12 + static_cast<int64_t>(sizeof(LaneStats)));
   int k = 1;
-  while (2 * k <= kMaxPixelLanes && 2 * k * P <= kLaneThreads && 2 * k * per_lane <= kLaneScratchBytes) k *= 2;
+  const int64_t scratch = env_setting("NSPLAT_CUDA_LANE_SCRATCH_BYTES", kLaneScratchBytes);
+  while (2 * k <= kMaxPixelLanes && 2 * k * P <= kLaneThreads && 2 * k * per_lane <= scratch) k *= 2;
   return k;
 }
 
@@ -925,7 +941,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   const int64_t camera_scratch =
       tiles * kTilePixels *
       (lanes * m * 12 + (lanes > 1 ? lanes * static_cast<int64_t>(sizeof(LaneStats)) + m * 12 + 8 : 0));
-  const int64_t group = std::max<int64_t>(1, std::min<int64_t>({B, kCameraGroup, kLaneScratchBytes / std::max<int64_t>(camera_scratch, 1)}));
+  const int64_t scratch = env_setting("NSPLAT_CUDA_LANE_SCRATCH_BYTES", kLaneScratchBytes);
+  const int64_t group = std::max<int64_t>(1, std::min<int64_t>({B, kCameraGroup, scratch / std::max<int64_t>(camera_scratch, 1)}));
   const int64_t groups = (B + group - 1) / group;
   const int64_t heaps = group * tiles * lanes * kTilePixels, merged = group * tiles * kTilePixels;
   at::Tensor key_scratch = at::empty({heaps * m}, opts.dtype(at::kDouble));
