@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from nsplat.engine import write_json
+from nsplat.run.engine import write_json
 
 #: The repository root.
 REPO = Path(__file__).resolve().parents[1]

@@ -8,7 +8,7 @@ For a run's stage-1 surfels (``RUN/geometry.ply``), on the held-out views of its
   training cameras) in the 3DGS reference renderer (:mod:`tests.gs_reference`: 3DGS's image formation,
   gsplat's 0.999 clamp, centre-depth order);
 * ``3dgs classic: fitted``: ``export --format 3dgs --fit-epochs N`` (the conversion, then N epochs of fitting
-  to nsplat's renders of the training cameras, :mod:`nsplat.gaussian_fit`) in the same renderer;
+  to nsplat's renders of the training cameras, :mod:`nsplat.gaussians.fit`) in the same renderer;
 * ``3dgs antialiased``: ``export --format 3dgs --antialiased`` in the reference renderer's antialiased mode
   (Mip-Splatting's compensation, which the file's header asks for);
 * ``nsplat: import …``: each file read back as stage 1's start (``geometry.init: ply``) rendered by nsplat.
@@ -38,10 +38,10 @@ import yaml
 
 from benchmarks.common import markdown, write_result
 from nsplat.config import load_config
-from nsplat.export import export
-from nsplat.gaussian_fit import FitSettings
-from nsplat.metrics_image import psnr
-from nsplat.render import render_views
+from nsplat.evaluation.image_metrics import psnr
+from nsplat.gaussians.export import export
+from nsplat.gaussians.fit import FitSettings
+from nsplat.render.renderer import render_views
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views

@@ -11,7 +11,7 @@ cameras' intrinsics scaled to it) and per number of views rendered in one op cal
 * **step**: the stage-1 step through the public API, :func:`nsplat.ops.splat` forward of the ``B`` cameras in one
   call (a ``[B]`` seed tensor, one seed per camera) + the L1 loss against the training images (resized to the
   resolution) + its backward (no optimiser step). The features are each view's colour of the SH coefficients
-  (:func:`nsplat.sh.view_colour`, as the fitter does), ``[N,3]`` for one view and per-camera ``[B,N,3]`` for
+  (:func:`nsplat.render.sh.view_colour`, as the fitter does), ``[N,3]`` for one view and per-camera ``[B,N,3]`` for
   several (one op call, camera ``b`` seeing its own colours); for several views the same step is also timed as ``B``
   one-view calls (the path before per-camera features), beside it. On CUDA one more step runs under
   ``torch.cuda.set_sync_debug_mode("warn")``: its device-to-host synchronisations, by source line, go to the JSON.
@@ -48,7 +48,7 @@ from benchmarks.common import REPO, markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.ops import project, sample, splat
 from nsplat.ops.validation import inclusion_for
-from nsplat.sh import view_colour
+from nsplat.render.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.starts import initial_geometry

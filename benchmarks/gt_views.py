@@ -19,11 +19,11 @@ import torch
 
 from benchmarks.common import REPO, markdown, write_result
 from nsplat.config import load_config, read_yaml
-from nsplat.data.dss import HELDOUT_OFFSET, cached_gt_images, gt_scene, view_cameras
 from nsplat.data.pointclouds import load_shape
 from nsplat.ops import splat_dense
-from nsplat.shading import lambert
+from nsplat.render.shading import lambert
 from nsplat.tasks.reconstruct import Config
+from nsplat.tasks.reconstruct_views import HELDOUT_OFFSET, cached_gt_images, gt_scene, view_cameras
 
 
 def measure(shape: str, overrides: list[str], dense: bool) -> dict:

@@ -36,9 +36,9 @@ from typing import Callable
 import torch
 
 from benchmarks.common import REPO, markdown, write_result
-from nsplat import precision
 from nsplat.config import load_config, read_yaml
 from nsplat.models import PatchDiscriminator, UNet
+from nsplat.tasks.neural import precision
 from nsplat.tasks.neural.config import Config
 
 #: Image side → the shipped config whose networks run at it.
@@ -52,7 +52,8 @@ Step = Callable[[], torch.Tensor]
 
 
 def _step(net: torch.nn.Module, args: tuple[torch.Tensor, ...], dtype: torch.dtype) -> Step:
-    """One forward+backward of ``net`` on ``args`` in ``dtype`` (:func:`nsplat.precision.autocast`); returns the
+    """One forward+backward of ``net`` on ``args`` in ``dtype`` (:func:`nsplat.tasks.neural.precision.autocast`);
+    returns the
     float32 output."""
 
     def run() -> torch.Tensor:

@@ -12,7 +12,7 @@ behind — ``history.json`` (train/val PSNR over stage-2 steps), ``eval_<split>/
 and prints a Markdown table (with the full val split's metrics where ``python train.py eval --run DIR --split
 val`` has written ``eval_val/``).
 
-    python -m tools.neural_runs --name lego-200 --split test \\
+    python -m benchmarks.neural_runs --name lego-200 --split test \\
         40k=runs/lego-40k final=runs/lego --views 4
 """
 from __future__ import annotations
@@ -122,7 +122,7 @@ def main() -> None:
         label, _, folder = spec.partition("=")
         rows.append(summary(label, Path(folder), args.split))
     text = table(rows, args.split)
-    write_result(f"neural_runs-{args.name}", {"command": "python -m tools.neural_runs " + " ".join(sys.argv[1:]),
+    write_result(f"neural_runs-{args.name}", {"command": "python -m benchmarks.neural_runs " + " ".join(sys.argv[1:]),
                                               "runs": [{k: v for k, v in r.items() if k != "per_view"} for r in rows],
                                               "markdown": text}, text)
     figure(rows, args.split, args.views, IMAGES / f"{args.name}.png",

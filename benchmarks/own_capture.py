@@ -32,8 +32,8 @@ import pycolmap
 from matplotlib.figure import Figure
 
 from benchmarks.common import IMAGES, REPO, run_config, write_result
+from benchmarks.neural_runs import save, summary, view_grid
 from nsplat.data.synthetic_capture import CaptureSpec, ensure_capture
-from tools.neural_runs import save, summary, view_grid
 
 SPEC = CaptureSpec(resolution=256, views=56)
 

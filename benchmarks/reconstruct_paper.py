@@ -28,7 +28,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from benchmarks.common import markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.data.pointclouds import load_shape
-from nsplat.metrics import bbox_diagonal
+from nsplat.evaluation.shape_metrics import bbox_diagonal
 from nsplat.tasks import reconstruct
 
 

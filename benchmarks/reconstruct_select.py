@@ -23,7 +23,7 @@ import torch
 from benchmarks.common import markdown, write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.data.pointclouds import load_shape
-from nsplat.metrics_image import psnr
+from nsplat.evaluation.image_metrics import psnr
 from nsplat.tasks import reconstruct
 
 

@@ -5,7 +5,7 @@ fused from a real RGB-D capture: the paper's memory claim (DSS had to drop 90 % 
 The cloud is fused (:func:`nsplat.data.fusion.fuse`) from every frame of the TUM sequence ``rgbd/tum_fr1_rpy_50``
 at 640×480 along its odometry, once per point budget (``FusionConfig.max_points``: a larger budget is a finer merge
 voxel; ``all`` is the finest the fusion makes, the median pixel footprint). Each cloud is rendered into one camera
-(the middle frame) at each resolution by each renderer, ``nsplat.render.render`` with
+(the middle frame) at each resolution by each renderer, ``nsplat.render.renderer.render`` with
 
 * ``splat``: ``RenderConfig(renderer="splat", samples=40, eps=0.01, near=0.3)`` (the sampled op);
 * ``truncated``: ``RenderConfig(renderer="truncated", composite="alpha", near=0.3)`` (kernels cut at 3σ, every
@@ -57,7 +57,7 @@ from benchmarks.common import REPO, markdown, write_result
 from nsplat.data.fusion import FusionConfig, fuse
 from nsplat.data.paths import data_root
 from nsplat.data.rgbd import RGBDSequence, camera_of, load_frames, tum_files
-from nsplat.render import RenderConfig, render
+from nsplat.render.renderer import RenderConfig, render
 from nsplat.tasks.refine.optimisers import masked_l1
 
 #: The renderers compared, by name.

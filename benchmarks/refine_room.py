@@ -31,7 +31,7 @@ from benchmarks.common import IMAGES as ALL_IMAGES
 from benchmarks.common import REPO as ROOT
 from benchmarks.common import read_result, run_config, write_result
 from nsplat.config import read_yaml
-from nsplat.data.room import RoomSpec, load_room
+from nsplat.tasks.refine.room import RoomSpec, load_room
 
 IMAGES = ALL_IMAGES / "refine"
 

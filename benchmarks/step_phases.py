@@ -3,7 +3,7 @@
 Loads fitted surfels (default: ``runs/lego_splat_only/geometry.ply``, configs/lego_splat_only.yaml's stage 1) and runs
 the stage-1 step of the config
 phase by phase on the training views, one view per step as the fitter does: view-dependent colour
-(:func:`nsplat.sh.view_colour`), projection, the sampler, compositing, the L1 loss, the backward of all of
+(:func:`nsplat.render.sh.view_colour`), projection, the sampler, compositing, the L1 loss, the backward of all of
 them, and the Adam step. Reports the mean wall milliseconds of each phase over ``--steps`` steps (after 3
 warm-up steps) and its share.
 
@@ -25,8 +25,8 @@ from benchmarks.common import write_result
 from nsplat.config import load_config, read_yaml
 from nsplat.ops import composite_sample, project, sample
 from nsplat.ops.validation import inclusion_for
+from nsplat.render.sh import view_colour
 from nsplat.scene import SurfelScene
-from nsplat.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.starts import geometry_scene_config

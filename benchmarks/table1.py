@@ -42,9 +42,9 @@ import numpy as np
 from benchmarks.common import IMAGES as ALL_IMAGES
 from benchmarks.common import REPO, write_result
 from nsplat.config import load_config, read_yaml
-from nsplat.data.dss import cached_gt_images
 from nsplat.data.pointclouds import load_shape
 from nsplat.tasks.reconstruct import Config
+from nsplat.tasks.reconstruct_views import cached_gt_images
 
 IMAGES = ALL_IMAGES / "reconstruct"
 SHAPES = ("bunny", "teapot", "yoga1", "yoga6")

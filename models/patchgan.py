@@ -4,7 +4,7 @@ Input: the condition (the splatted feature image, ``[B, C, H, W]``) concatenated
 (``[B, 3, H, W]``). ``layers`` stride-2 4×4 convolutions (LeakyReLU 0.2, normalisation after all but
 the first), one stride-1 4×4 convolution and a 1-channel 4×4 output: one logit per patch
 (receptive field 70 px for ``layers = 3``). Patch logits are unbounded; the loss decides between
-LSGAN and BCE (:mod:`nsplat.losses`).
+LSGAN and BCE (:mod:`nsplat.models.losses`).
 """
 from __future__ import annotations
 

@@ -92,3 +92,14 @@ def camera_centres(viewmats: torch.Tensor) -> torch.Tensor:
     """World positions ``[B, 3]`` of the optical centres of world→camera matrices ``[B,4,4]``."""
     R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
     return -(R.transpose(1, 2) @ t[..., None])[..., 0]
+
+
+def look_at_point(viewmats: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """``(point [3] float64, spread)``: the point nearest (least squares) to the optical axes of
+    ``viewmats [V,4,4]`` and the smallest eigenvalue of the mean projector ``I − a aᵀ`` (how well the axes
+    pin it down)."""
+    C = camera_centres(viewmats.double())
+    axis = viewmats[:, 2, :3].double()
+    P = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]
+    point = torch.linalg.lstsq(P.sum(0), (P @ C[:, :, None]).sum(0)).solution[:, 0]
+    return point, float(torch.linalg.eigvalsh(P.mean(0))[0])

@@ -36,14 +36,15 @@ from typing import Any
 import torch
 import yaml
 
-from nsplat import distributed, report
-from nsplat.checkpoint import CheckpointError, atomic_write
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.data import commands as data_commands
 from nsplat.data.paths import config_dir, repo_root
 from nsplat.errors import DataError
 from nsplat.ops.validation import AllocationError
-from nsplat.runctx import (
+from nsplat.render.video import RenderRequest
+from nsplat.run import distributed, engine, report
+from nsplat.run.checkpoint import CheckpointError, atomic_write
+from nsplat.run.context import (
     RunContext,
     RunFolderError,
     RunLock,
@@ -55,7 +56,6 @@ from nsplat.runctx import (
     mark_finished,
 )
 from nsplat.tasks import TASKS, get_task
-from nsplat.video import RenderRequest
 from nsplat.viewer import commands as viewer_commands
 from nsplat.viewer import live
 from nsplat.viewer.config import split_viewer_overrides
@@ -64,7 +64,7 @@ DEFAULT_CONFIG = config_dir() / "default.yaml"
 
 
 COMMANDS = ("train", "eval", "render")
-#: Options of the ``render`` command (:class:`nsplat.video.RenderRequest`).
+#: Options of the ``render`` command (:class:`nsplat.render.video.RenderRequest`).
 RENDER_OPTIONS = ("path", "outputs", "fps", "frames", "resolution")
 #: Errors caused by the user's input: reported in one line, exit code 2, no traceback.
 USER_ERRORS = (ConfigError, RunFolderError, DataError, CheckpointError, AllocationError, FileNotFoundError)
@@ -266,7 +266,7 @@ def _train_run(args: argparse.Namespace, task: Any, cfg: Any, seed: int, device:
         args.run = value
         ctx = RunContext(run_dir=args.run, device=device, seed=seed, resume=args.resume)
         report.results.info("run folder: %s", args.run)
-        with live.session(args.viewer) if main else contextlib.nullcontext():
+        with live.session(args.viewer) if main else contextlib.nullcontext(), engine.step_hook(live.step):
             task.run(cfg, ctx)
         if main:
             mark_finished(args.run)

@@ -1,7 +1,7 @@
 """Child process of ``test_shutdown_leaves_no_communication_thread``, run by ``torchrun --nproc_per_node=2``:
-joins the process group as ``train.py`` does (:func:`nsplat.distributed.init_from_env`), renders a tiny scene
+joins the process group as ``train.py`` does (:func:`nsplat.run.distributed.init_from_env`), renders a tiny scene
 with the op (whose first call loads ``torch._dynamo``), sums the gradients over the ranks, leaves the group
-(:func:`nsplat.distributed.shutdown`) and prints, as JSON, the communication threads still alive.
+(:func:`nsplat.run.distributed.shutdown`) and prints, as JSON, the communication threads still alive.
 
 ``--no-early-import`` skips the import that :func:`init_from_env` does before joining (the cause of the abort
 at exit that the test guards against), to show that the check sees a group kept alive. That run then leaves with
@@ -15,8 +15,8 @@ import sys
 
 import torch
 
-from nsplat import distributed
 from nsplat.ops import splat
+from nsplat.run import distributed
 
 
 def main(argv: list[str]) -> None:

@@ -1,4 +1,4 @@
-"""A synthetic RGB-D sequence in the TUM layout, ray-traced from the synthetic room (:mod:`nsplat.data.room`):
+"""A synthetic RGB-D sequence in the TUM layout, ray-traced from the synthetic room (:mod:`nsplat.tasks.refine.room`):
 8-bit RGB and 16-bit depth PNGs, ``rgb.txt``/``depth.txt``, the exact trajectory as ``groundtruth.txt`` and a
 drifting estimate of it as ``odometry.txt`` (in its own frame: the first camera at the origin), as real odometry
 writes it."""
@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from nsplat.cameras import intrinsics_from_fov
-from nsplat.data.room import render_frame, room_primitives, trajectory
 from nsplat.data.tum_format import write_trajectory
+from nsplat.tasks.refine.room import render_frame, room_primitives, trajectory
 
 #: Frame rate of the synthetic sequence (stamps ``t0 + i / FPS``).
 FPS = 30.0

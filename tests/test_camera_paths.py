@@ -1,4 +1,5 @@
-"""Camera paths and videos (:mod:`nsplat.camera_paths`, :mod:`nsplat.video`): the smooth path passes through
+"""Camera paths and videos (:mod:`nsplat.render.camera_paths`, :mod:`nsplat.render.video`): the smooth path passes
+through
 the training poses and moves smoothly, nerfstudio's ``camera_path.json`` reads to the cameras that wrote it,
 depth and normal buffers of a known surfel, the PNG fallback without ffmpeg, and ``render`` end to end
 (every path and output) on a tiny neural run."""
@@ -15,12 +16,12 @@ import pytest
 import torch
 import yaml
 
-from nsplat.camera_paths import orbit, read_nerfstudio_path, smooth_path, tour
 from nsplat.cameras import camera_centres, look_at, opengl_c2w_to_viewmat
 from nsplat.cli import main
 from nsplat.errors import DataError
-from nsplat.render import RenderConfig, render_geometry
-from nsplat.video import depth_picture, normal_picture, write_video
+from nsplat.render.camera_paths import orbit, read_nerfstudio_path, smooth_path, tour
+from nsplat.render.renderer import RenderConfig, render_geometry
+from nsplat.render.video import depth_picture, normal_picture, write_video
 from tests.test_neural import _tiny
 
 

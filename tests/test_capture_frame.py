@@ -9,10 +9,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from nsplat.cameras import camera_centres, look_at
+from nsplat.cameras import camera_centres, look_at, look_at_point
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
-from nsplat.tasks.neural.frame import MIN_SPREAD, capture_frame, geometric_median, look_at_point
+from nsplat.tasks.neural.frame import MIN_SPREAD, capture_frame, geometric_median
 
 SIZE, FOCAL = 64, 50.0  # 65° field of view
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)

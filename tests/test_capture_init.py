@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from nsplat.cameras import camera_centres, look_at
+from nsplat.cameras import camera_centres, look_at, look_at_point
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
 from nsplat.tasks.neural.background import depth_range, fibonacci_sphere, fit_sphere, project, sphere_background
-from nsplat.tasks.neural.frame import look_at_point
 from nsplat.tasks.neural.sfm_init import fill_box, fill_points, isolated, plane_normals, reliable, sfm_surfels
 
 

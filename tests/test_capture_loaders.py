@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -262,14 +263,32 @@ def test_of_several_models_the_one_with_most_images_loads(tmp_path, fmt, caplog)
     assert len(load_colmap(scene, sparse="sparse/0", cache_dir=tmp_path / "cache", holdout_every=0).train) == 3
 
 
+def test_registered_images_without_a_photo_are_skipped_with_one_warning(tmp_path, caplog):
+    scene = tmp_path / "scene"
+    _write_scene(scene)
+    (scene / "images" / "im_03.png").unlink()
+    (scene / "images" / "im_08.png").unlink()
+    with caplog.at_level(logging.WARNING):
+        cap = load_colmap(scene, cache_dir=tmp_path / "cache")
+    names = cap.train.names + cap.test.names
+    assert len(names) == 8 and "im_03.png" not in names and "im_08.png" not in names
+    assert cap.test.names == ["im_00.png"]  # every 8th of the 8 present, by name
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "\n" not in warnings[0].getMessage()
+    message = warnings[0].getMessage()
+    assert str(scene / "sparse/0/images.bin") in message and "2 of the 10 registered images" in message
+    assert "images/im_03.png" in message and "training on the 8" in message
+
+
 def _damage(scene: Path, case: str) -> Path:
     """Damage the written scene as ``case`` says; returns the file the error must name."""
     model = scene / "sparse" / "0"
     kind, _, target = case.partition(" ")
     path = model / target if target.startswith(("cameras", "images.", "points3D", "rigs", "frames")) else None
-    if case == "image absent":
-        path = scene / "images" / "im_03.png"
-        path.unlink()
+    if case == "images absent":  # too few left: 5 of the 10 (the split needs 6)
+        for j in range(3, 8):
+            (scene / "images" / f"im_{j:02d}.png").unlink()
+        path = model / "images.bin"
     elif case == "unknown camera model":
         path = model / "cameras.bin"
     elif kind == "missing":
@@ -288,7 +307,7 @@ def _damage(scene: Path, case: str) -> Path:
 CORRUPTIONS = {
     "missing points3D.bin": ("bin", MODELS),
     "missing frames.bin": ("bin", MODELS),
-    "image absent": ("bin", MODELS),
+    "images absent": ("bin", MODELS),
     "unknown camera model": ("bin", {"PINHOLE": MODELS["PINHOLE"], "FISHEYE": None}),
     "truncated cameras.bin": ("bin", MODELS),
     "truncated images.bin": ("bin", MODELS),
@@ -310,8 +329,9 @@ def test_corrupt_or_partial_model_is_a_one_line_error_naming_the_file(tmp_path, 
     assert named in message and "\n" not in message
     if case == "unknown camera model":
         assert "FISHEYE" in message
-    if case == "image absent":
-        assert str(scene / "sparse/0/images.bin") in message
+    if case == "images absent":
+        assert "5 of the 10 registered images" in message and "images/im_03.png" in message
+        assert "which leaves 5; at least 6 are needed (one in 8 by name held out for testing" in message
 
 
 #: nerfstudio's applied_transform of ns-process-data: swap x and y, negate z (a rotation).
@@ -384,8 +404,10 @@ def test_transforms_json_round_trips_to_the_expected_cameras(tmp_path):
                        torch.tensor([[F, 0, 32.5], [0, F + 1, 24.5], [0, 0, 1]], dtype=torch.float32))
 
 
-@pytest.mark.parametrize("change, field", [({"camera_model": "OPENCV_FISHEYE"}, "OPENCV_FISHEYE"),
+@pytest.mark.parametrize("change, field", [({"camera_model": "EQUIRECTANGULAR"}, "EQUIRECTANGULAR"),
                                            ({"k4": 0.001}, "'k4'"), ({"fl_x": "wide"}, "'fl_x'"),
+                                           ({"camera_model": "OPENCV_FISHEYE"}, "p1 or p2"),
+                                           ({"aabb_scale": "big"}, "'aabb_scale'"),
                                            ({"applied_transform": [[2.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]},
                                             "'applied_transform'")])
 def test_transforms_json_bad_field_is_a_one_line_error(tmp_path, change, field):
@@ -394,3 +416,138 @@ def test_transforms_json_bad_field_is_a_one_line_error(tmp_path, change, field):
         load_transforms(tmp_path / "ns", cache_dir=tmp_path / "cache")
     message = str(info.value)
     assert str(tmp_path / "ns" / "transforms.json") in message and field in message and "\n" not in message
+
+
+def test_transforms_frames_without_a_photo_are_skipped_with_one_warning(tmp_path, caplog):
+    """instant-ngp's demo folders list frames whose photo is not there: the others train, with one warning line."""
+    scene = tmp_path / "ns"
+    _write_transforms(scene)
+    for i in (3, 6):
+        (scene / f"images/frame_{i:05d}.png").unlink()
+    with caplog.at_level(logging.WARNING):
+        cap = load_transforms(scene, cache_dir=tmp_path / "cache")
+    names = cap.train.names + cap.test.names
+    assert len(names) == 7 and not {"images/frame_00003.png", "images/frame_00006.png"} & set(names)
+    assert cap.test.names == ["images/frame_00000.png"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "\n" not in warnings[0], warnings
+    assert str(scene / "transforms.json") in warnings[0] and "2 of the 9 frames" in warnings[0]
+    assert "(e.g. images/frame_00006.png)" in warnings[0] and "training on the 7" in warnings[0]  # frames listed 8..0
+
+
+def test_transforms_with_too_few_photos_left_is_a_one_line_error(tmp_path):
+    scene = tmp_path / "ns"
+    _write_transforms(scene)
+    for i in (1, 2, 3, 4):
+        (scene / f"images/frame_{i:05d}.png").unlink()
+    with pytest.raises(DataError) as info:
+        load_transforms(scene, cache_dir=tmp_path / "cache")
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(str(scene / "transforms.json"))
+    assert "4 of the 9 frames" in message and "which leaves 5; at least 6 are needed" in message
+    assert "1 test, 1 validation and 4 training views" in message
+    with pytest.raises(DataError, match=r"leaves 5; at least 7 are needed \(one in 4 by name .*: 2 test, 1 val"):
+        load_transforms(scene, holdout_every=4, cache_dir=tmp_path / "cache")
+    assert len(load_transforms(scene, holdout_every=0, cache_dir=tmp_path / "cache").train) == 5  # no test view
+
+
+def _write_frames(root: Path, cameras: list[pycolmap.Camera], top: dict, frames: list[dict], **extra: object) -> None:
+    """``root/transforms.json`` with ``top`` and per-frame ``frames`` fields; photo ``i`` rendered through
+    ``cameras[i]`` (its own size), looking at the origin from about 4 units."""
+    g = np.random.default_rng(5)
+    (root / "images").mkdir(parents=True)
+    entries = []
+    for i, (camera, fields) in enumerate(zip(cameras, frames)):
+        V = np.eye(4)
+        V[:3, :3] = Rotation.from_rotvec(g.uniform(-0.2, 0.2, 3)).as_matrix()
+        V[:3, 3] = [*g.uniform(-0.2, 0.2, 2), 4.0]
+        iio.imwrite(root / f"images/{i:02d}.png", _render(camera))
+        c2w = np.linalg.inv(V) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        entries.append({"file_path": f"images/{i:02d}.png", "transform_matrix": c2w.tolist(), **fields})
+    (root / "transforms.json").write_text(json.dumps({**top, "frames": entries, **extra}))
+
+
+def _cam(model: str, w: int, h: int, params: list[float]) -> pycolmap.Camera:
+    return pycolmap.Camera(camera_id=1, model=model, width=w, height=h, params=params)
+
+
+def _check_photos(cap, width: int, height: int) -> None:
+    """Every loaded photo is the pattern as its pinhole ``K`` sees it (within the warp's interpolation error)."""
+    names, _, Ks, images = _all(cap)
+    assert images.shape[1:] == (height, width, 3)
+    for K, img in zip(Ks, images):
+        err = (img.double().numpy() - _exact(K, width, height))[2:-2, 2:-2]
+        assert np.abs(err).mean() < 1.5 / 255 and np.abs(err).max() < 8 / 255
+
+
+def test_transforms_per_frame_intrinsics_and_distortion(tmp_path):
+    """nerfstudio's several-camera files: every intrinsic and distortion field in the frames, none at the top."""
+    models = [("OPENCV", [F, F + 1.0, 32.5, 24.5, -0.06, 0.015, 0.001, -0.0008]), ("PINHOLE", [58.0, 59.0, 31.0, 23.0]),
+              ("OPENCV", [62.0, 62.0, 33.0, 24.0, 0.04, 0.0, 0.0, 0.0])] * 3
+    cameras = [_cam(m, W, H, p) for m, p in models]
+    frames = []
+    for model, p in models:
+        fields = dict(zip(("fl_x", "fl_y", "cx", "cy"), p), w=W, h=H, camera_model=model)
+        if model == "OPENCV":
+            fields.update(zip(("k1", "k2", "p1", "p2"), p[4:]))
+        frames.append(fields)
+    _write_frames(tmp_path / "ns", cameras, {}, frames)
+    cap = load_transforms(tmp_path / "ns", cache_dir=tmp_path / "cache")
+    for i, camera in enumerate(cameras):
+        got = cap.cameras[f"images/{i:02d}.png"]
+        assert got.model_name == camera.model_name and np.allclose(got.params, camera.params, rtol=0, atol=1e-12)
+    _check_photos(cap, W, H)
+
+
+def test_transforms_portrait_photos(tmp_path):
+    """Photos stored portrait (w < h) keep their orientation; a photo stored the other way round is named as such."""
+    w, h = 48, 64
+    camera = _cam("OPENCV", w, h, [F, F, 24.5, 31.5, -0.05, 0.01, 0.0, 0.0])
+    top = {"camera_model": "OPENCV", "fl_x": F, "fl_y": F, "cx": 24.5, "cy": 31.5, "w": w, "h": h, "k1": -0.05,
+           "k2": 0.01}
+    _write_frames(tmp_path / "ns", [camera] * 8, top, [{}] * 8)
+    cap = load_transforms(tmp_path / "ns", cache_dir=tmp_path / "cache")
+    assert (cap.train.width, cap.train.height) == (w, h)
+    _check_photos(cap, w, h)
+    iio.imwrite(tmp_path / "ns" / "images/05.png", np.zeros((w, h, 3), np.uint8))
+    with pytest.raises(DataError, match="image is 64x48 but camera 6 .* is 48x64 \\(turned a quarter"):
+        load_transforms(tmp_path / "ns", cache_dir=tmp_path / "cache")
+
+
+def test_transforms_camera_angle_x_alone(tmp_path):
+    """instant-ngp's minimal file: only ``camera_angle_x``: fl_x = fl_y from it, the principal point at the centre,
+    w and h from the photos."""
+    angle = 2 * math.atan(0.5 * W / F)
+    _write_frames(tmp_path / "ns", [_cam("PINHOLE", W, H, [F, F, W / 2, H / 2])] * 8, {"camera_angle_x": angle},
+                  [{}] * 8)
+    cap = load_transforms(tmp_path / "ns", cache_dir=tmp_path / "cache")
+    camera = cap.cameras["images/00.png"]
+    assert (camera.model_name, camera.width, camera.height) == ("OPENCV", W, H)
+    assert np.allclose(camera.params, [F, F, W / 2, H / 2, 0, 0, 0, 0], rtol=0, atol=1e-9)
+    assert torch.allclose(cap.train.Ks[0], torch.tensor([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]]))
+    _check_photos(cap, W, H)
+    meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps({"camera_angle_y": 2 * math.atan(0.5 * H / 50.0),
+                                                                 "frames": meta["frames"]}))
+    assert np.allclose(load_transforms(tmp_path / "ns").cameras["images/03.png"].params[:2], [50.0, 50.0])
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps({"frames": meta["frames"]}))
+    with pytest.raises(DataError, match="frame 0: no focal length: none of x_fov, fl_x, camera_angle_x"):
+        load_transforms(tmp_path / "ns")
+
+
+def test_transforms_aabb_scale_is_kept_and_fisheye_is_read(tmp_path):
+    """instant-ngp's ``aabb_scale`` is kept in the capture's metadata; ``OPENCV_FISHEYE`` (or ``is_fisheye``) is
+    pycolmap's fisheye camera with k1..k4, undistorted like the others."""
+    params = [F, F, 32.0, 24.0, 0.02, -0.01, 0.005, -0.002]
+    fisheye = _cam("OPENCV_FISHEYE", W, H, params)
+    top = {"fl_x": F, "fl_y": F, "cx": 32.0, "cy": 24.0, "w": W, "h": H, "k1": 0.02, "k2": -0.01, "k3": 0.005,
+           "k4": -0.002}
+    for flag in ({"camera_model": "OPENCV_FISHEYE"}, {"is_fisheye": True}):
+        root = tmp_path / next(iter(flag))
+        _write_frames(root, [fisheye] * 8, {**top, **flag}, [{}] * 8, aabb_scale=16)
+        cap = load_transforms(root, cache_dir=tmp_path / "cache")
+        assert cap.metadata == {"aabb_scale": 16}
+        camera = cap.cameras["images/00.png"]
+        assert camera.model_name == "OPENCV_FISHEYE" and np.allclose(camera.params, params, rtol=0, atol=1e-12)
+        _check_photos(cap, W, H)
+    assert _write_transforms(tmp_path / "plain") and load_transforms(tmp_path / "plain").metadata == {}

@@ -13,8 +13,10 @@ from typing import Any
 import pytest
 import yaml
 
-from nsplat.config import load_config, read_yaml, to_dict, yaml_load
+from nsplat.config import ConfigError, load_config, read_yaml, to_dict, yaml_load
+from nsplat.data.nerf_scenes import NERF_SCENES
 from nsplat.tasks import get_task
+from nsplat.tasks.neural.config import Config
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 NEURAL = sorted(p.name for p in CONFIGS.glob("*.yaml") if read_yaml(p)["task"] == "neural")
@@ -38,10 +40,12 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def _own_keys(path: Path) -> set[str]:
-    """The dotted keys a config file names itself (without its base)."""
+    """The dotted keys a config file names itself (without its base); naming ``data.scene`` names ``data.root``
+    too, which is the scene's folder unless given."""
     data = yaml_load(path.read_text())
     data.pop("base", None)
-    return set(_flat(data))
+    own = set(_flat(data))
+    return own | {"data.root"} if "data.scene" in own else own
 
 
 def _chain(name: str) -> list[str]:
@@ -53,7 +57,7 @@ def _chain(name: str) -> list[str]:
 
 
 def test_there_are_derived_neural_configs():
-    assert {"colmap.yaml", "lego.yaml", "lego_splat_only.yaml", "splat_only.yaml"} <= set(NEURAL)
+    assert {"colmap.yaml", "lego.yaml", "lego_splat_only.yaml", "nerf_synthetic.yaml", "splat_only.yaml"} <= set(NEURAL)
 
 
 @pytest.mark.parametrize("name", [n for n in NEURAL if n != "default.yaml"])
@@ -87,3 +91,46 @@ def test_a_change_of_the_main_recipe_reaches_colmap(tmp_path):
     assert (before["neural.batch"], before["neural.unet.width"], before["neural.steps"]) == (2, 16, 1000)
     assert (after["neural.batch"], after["neural.unet.width"], after["render.lowpass"]) == (3, 24, 0.7)
     assert {k for k in after if after[k] != before[k]} == {"neural.batch", "neural.unet.width", "render.lowpass"}
+
+
+def _nerf(*overrides: str) -> Config:
+    return load_config(Config, read_yaml(CONFIGS / "nerf_synthetic.yaml"), list(overrides))
+
+
+@pytest.mark.parametrize("scene", NERF_SCENES)
+def test_nerf_synthetic_trains_any_scene_from_its_400_copy(scene):
+    """``data.scene`` picks the folder: the scene's 400² copy whatever ``data.resolution``; ``data.root`` wins."""
+    cfg = _nerf(f"data.scene={scene}")
+    assert (cfg.data.scene, cfg.data.root) == (scene, f"$NSPLAT_DATA/nerf_synthetic/{scene}_400")
+    assert _nerf(f"data.scene={scene}", "data.resolution=400").data.root == cfg.data.root
+    assert _nerf(f"data.scene={scene}", "data.root=/my/copy").data.root == "/my/copy"
+    lego = _flat(to_dict(_nerf()))
+    differ = {k for k, v in _flat(to_dict(cfg)).items() if v != lego[k]}
+    assert differ == (set() if scene == "lego" else {"data.scene", "data.root"})
+
+
+def _resolved_with(path: Path, *overrides: str) -> dict[str, Any]:
+    raw = read_yaml(path)
+    return _flat(to_dict(load_config(get_task(raw["task"]).Config, raw, list(overrides))))
+
+
+def test_lego_is_the_nerf_synthetic_recipe_on_lego_with_its_box():
+    lego, base = _resolved(CONFIGS / "lego.yaml"), _flat(to_dict(_nerf("data.scene=lego")))
+    assert lego["data.scene"] == "lego" and lego["data.root"] == "$NSPLAT_DATA/nerf_synthetic/lego_400"
+    assert {k for k in lego if lego[k] != base[k]} == {"geometry.bbox"}
+    assert lego["geometry.bbox"] == [-0.8, -1.3, -0.75, 0.8, 1.3, 1.15]
+    chair = _resolved_with(CONFIGS / "lego.yaml", "data.scene=chair")
+    assert chair["data.root"] == "$NSPLAT_DATA/nerf_synthetic/chair_400"
+
+
+@pytest.mark.parametrize("override, needles", [
+    ("data.scene=chairs", ["data.scene", "one of chair, drums", "'chairs'"]),
+    ("data.scene=7", ["data.scene", "expected", "7"]),
+    ("data.source=colmap", ["data.scene", "source colmap", "'lego'"]),
+])
+def test_a_bad_scene_is_a_config_error_naming_the_field(override, needles):
+    with pytest.raises(ConfigError) as info:
+        _nerf(override)
+    message = str(info.value)
+    assert message.startswith("data.scene: ") and "\n" not in message
+    assert all(n in message for n in needles), message

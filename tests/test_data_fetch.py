@@ -1,6 +1,7 @@
 """``nsplat data fetch|prepare`` against a local HTTP server on 127.0.0.1: a full fetch that the loaders read,
-resume after a cut-off download, checksum mismatch, full disk, the command line's one-line errors, and a TUM RGB-D
-sequence (.tgz) with the archives it must refuse."""
+resume after a cut-off download, checksum mismatch, full disk, the command line's one-line errors, all eight
+NeRF-synthetic scenes from one zip the test writes (one download, by group or by name, the configs' ``data.scene``),
+and a TUM RGB-D sequence (.tgz) with the archives it must refuse."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,6 +11,7 @@ import http.server
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -25,12 +27,15 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from nsplat import cli
+from nsplat.config import ConfigError, load_config, read_yaml
 from nsplat.data import archives as archives_mod
 from nsplat.data import fetch as fetch_mod
 from nsplat.data import prepare as prepare_mod
 from nsplat.data.nerf_synthetic import SPLITS, load_split
 from nsplat.data.paths import data_root, resolve
 from nsplat.data.pointclouds import load_dss_shape
+from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.data import load_views
 
 REPO = Path(__file__).resolve().parents[1]
 SIDE = 8  # fixture image side; prepared at 4
@@ -46,22 +51,30 @@ def _png(seed: int) -> bytes:
     return iio.imwrite("<bytes>", img, extension=".png")
 
 
-def _lego_zip() -> bytes:
-    """A NeRF-synthetic-style ``nerf_synthetic.zip``: ``nerf_synthetic/lego`` with 2 frames per split, another
-    scene and macOS metadata that must not be extracted."""
+def _nerf_zip(scenes: tuple[str, ...] = ("lego",)) -> bytes:
+    """A NeRF-synthetic-style ``nerf_synthetic.zip``: ``nerf_synthetic/<scene>`` with 2 frames per split for each of
+    ``scenes`` (each scene's own pixels), and macOS metadata that must not be extracted."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
-        for s, split in enumerate(SPLITS):
-            frames = []
-            for i in range(2):
-                c2w = [[1.0, 0.0, 0.0, 0.1 * i], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
-                frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0125, "transform_matrix": c2w})
-                zf.writestr(f"nerf_synthetic/lego/{split}/r_{i}.png", _png(10 * s + i))
-            zf.writestr(f"nerf_synthetic/lego/transforms_{split}.json",
-                        json.dumps({"camera_angle_x": 0.6911, "frames": frames}))
-        zf.writestr("nerf_synthetic/ship/transforms_train.json", "{}")
-        zf.writestr("__MACOSX/nerf_synthetic/lego/._transforms_train.json", "junk")
+        for k, scene in enumerate(scenes):
+            for s, split in enumerate(SPLITS):
+                frames = []
+                for i in range(2):
+                    c2w = [[1.0, 0.0, 0.0, 0.1 * i], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
+                    frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0125, "transform_matrix": c2w})
+                    zf.writestr(f"nerf_synthetic/{scene}/{split}/r_{i}.png", _png(100 * k + 10 * s + i))
+                zf.writestr(f"nerf_synthetic/{scene}/transforms_{split}.json",
+                            json.dumps({"camera_angle_x": 0.6911, "frames": frames}))
+            zf.writestr(f"__MACOSX/nerf_synthetic/{scene}/._transforms_train.json", "junk")
     return buf.getvalue()
+
+
+def _lego_zip() -> bytes:
+    """``nerf_synthetic.zip`` with lego only, and a broken ship (an empty transforms file) that must not be read."""
+    data = io.BytesIO(_nerf_zip())
+    with zipfile.ZipFile(data, "a") as zf:
+        zf.writestr("nerf_synthetic/ship/transforms_train.json", "{}")
+    return data.getvalue()
 
 
 def _ply(n: int) -> bytes:
@@ -290,11 +303,15 @@ def test_dss_fetch_prints_the_destination_and_loads(server, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["fetch", "dss", "--resolution", "400"], "usage error: --resolution applies to lego only"),
+    (["fetch", "dss", "--resolution", "400"], "usage error: --resolution applies to the NeRF-synthetic scenes (chair,"),
     (["fetch", "lego", "--sha256", "abc"], "usage error: --sha256: expected 64 hexadecimal digits"),
-    (["fetch", "chair"], "usage error: nsplat data fetch: argument DATASET: invalid choice: 'chair'"),
+    (["fetch", "chairs"], "usage error: nsplat data fetch: argument DATASET: invalid choice: 'chairs'"),
     (["prepare", "lego"], "usage error: nsplat data prepare: the following arguments are required: --resolution"),
     (["prepare", "lego", "--resolution", "4"], "error: no scene at"),
+    (["prepare", "ship", "--resolution", "4"], "error: no scene at"),
+    (["prepare", "nerf_synthetic", "--resolution", "4"], "usage error: nsplat data prepare: argument SCENE: invalid "
+                                                         "choice: 'nerf_synthetic'"),
+    (["fetch", "chair", "tum_fr1_rpy", "--archive", "x.zip"], "usage error: --archive applies to one dataset"),
     (["fetch", "lego", "--archive", "missing.zip"], "error: --archive missing.zip: no such file"),
     (["fetch", "dss", "--archive", "x.tgz"], "usage error: --archive applies to one dataset published as an archive"),
     (["fetch", "lego", "tum_fr1_rpy", "--sha256", "0" * 64], "usage error: --sha256 applies to one dataset"),
@@ -304,6 +321,82 @@ def test_usage_and_missing_input_are_one_line(argv, message, tmp_path, monkeypat
     code, _, err = _run(capsys, *argv, "--root", str(tmp_path))
     assert code == 2 and len(err) == 1 and err[0].startswith(message)
     assert _files(tmp_path) == []
+
+
+EIGHT = ("chair", "drums", "ficus", "hotdog", "lego", "materials", "mic", "ship")
+
+
+def test_fetch_nerf_synthetic_unpacks_all_eight_scenes_from_one_download(server, tmp_path, capsys):
+    root, data = tmp_path / "data", _nerf_zip(EIGHT)
+    server.files["nerf_synthetic.zip"] = data
+    code, out, err = _run(capsys, "fetch", "nerf_synthetic", "--resolution", "4", "--root", str(root), "--mirror",
+                          server.url, "--quiet")
+    folder = root / "nerf_synthetic"
+    assert code == 0 and err == [] and server.requests == [("nerf_synthetic.zip", None)]  # downloaded once
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*EIGHT, *(f"{s}_4" for s in EIGHT)])  # no zip kept
+    assert out.count("no checksum is published") == 1 and f"sha256 {_sha(data)}" in out  # the archive's note, once
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        for scene in EIGHT:
+            assert f"{scene}: fetched into {folder / scene}\n" in out
+            assert f"{scene}_4: written to {folder / scene}_4\n" in out
+            assert json.loads((folder / scene / "SOURCE.json").read_text())["dataset"] == scene
+            png = (folder / scene / "train" / "r_1.png").read_bytes()
+            assert png == zf.read(f"nerf_synthetic/{scene}/train/r_1.png")
+            assert load_split(folder / f"{scene}_4", "test").images.shape == (2, 4, 4, 3)
+    code, out, _ = _run(capsys, "fetch", "chair", "nerf_synthetic", "--root", str(root), "--mirror", server.url)
+    assert code == 0 and len(server.requests) == 1 and out.count("already in") == 8
+    assert fetch_mod.expand(["chair", "nerf_synthetic", "dss"]) == [*EIGHT, "dss"]
+
+
+def test_scenes_by_name_share_one_download_and_resume_another_scenes(server, tmp_path, monkeypatch, capsys):
+    """Two scenes named in one command: one download. A download cut off while fetching lego is resumed by a later
+    command for another scene, and the scene fetched as ``lego`` is laid out as before."""
+    root, data = tmp_path / "data", _nerf_zip(EIGHT)
+    server.files["nerf_synthetic.zip"] = data
+    code, out, _ = _run(capsys, "fetch", "ship", "chair", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 0 and server.requests == [("nerf_synthetic.zip", None)]
+    assert sorted(p.name for p in (root / "nerf_synthetic").iterdir()) == ["chair", "ship"]
+    server.cut["nerf_synthetic.zip"] = len(data) // 3
+    code, _, err = _run(capsys, "fetch", "lego", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 2 and "resume" in err[0] and (root / "nerf_synthetic" / "lego.part").is_dir()
+    code, out, err = _run(capsys, "fetch", "mic", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 0 and err == [] and server.requests[-1] == ("nerf_synthetic.zip", f"bytes={len(data) // 3}-")
+    assert sorted(p.name for p in (root / "nerf_synthetic").iterdir()) == ["chair", "mic", "ship"]
+    # configs/nerf_synthetic.yaml with data.scene=chair reads the scene's <scene>_400 copy (here the 8² originals)
+    monkeypatch.setenv("NSPLAT_DATA", str(root))
+    shutil.copytree(root / "nerf_synthetic" / "chair", root / "nerf_synthetic" / "chair_400")
+    cfg = load_config(Config, read_yaml(REPO / "configs" / "nerf_synthetic.yaml"), ["data.scene=chair",
+                                                                                    "data.resolution=8"])
+    views = load_views(cfg, "train", torch.device("cpu"))
+    assert views.images.shape == (2, SIDE, SIDE, 3) and cfg.data.root == "$NSPLAT_DATA/nerf_synthetic/chair_400"
+    with pytest.raises(ConfigError, match="data.scene: drums: no transforms_train.json in .*; fetch the scene with "
+                                          "`nsplat data fetch drums --resolution 400`"):
+        load_views(load_config(Config, read_yaml(REPO / "configs" / "nerf_synthetic.yaml"), ["data.scene=drums"]),
+                   "train", torch.device("cpu"))
+    code, out, _ = _run(capsys, "prepare", "mic", "--resolution", "4", "--root", str(root), "--quiet")
+    mic4 = root / "nerf_synthetic" / "mic_4"
+    assert code == 0 and f"mic_4: written to {mic4}" in out
+    small, ref = load_split(mic4, "train"), load_split(root / "nerf_synthetic" / "mic", "train", resolution=4)
+    assert torch.allclose(small.images, ref.images, atol=2.5 / 255) and torch.allclose(small.Ks, ref.Ks)
+
+
+def test_a_failure_in_one_scene_keeps_the_scenes_before_it_whole(server, tmp_path, monkeypatch, capsys):
+    root = tmp_path / "data"
+    server.files["nerf_synthetic.zip"] = _nerf_zip(EIGHT)
+
+    def fill_disk(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path) -> None:
+        if "/hotdog/" in info.filename:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(target))
+        extract(zf, info, target)
+
+    extract = archives_mod.extract_member
+    monkeypatch.setattr(archives_mod, "extract_member", fill_disk)
+    code, out, err = _run(capsys, "fetch", "nerf_synthetic", "--root", str(root), "--mirror", server.url, "--quiet")
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: disk full")
+    assert sorted(p.name for p in (root / "nerf_synthetic").iterdir()) == ["chair", "drums", "ficus"]
+    assert all(f"{s}: fetched into" in out for s in ("chair", "drums", "ficus"))
+    for scene in ("chair", "drums", "ficus"):
+        fetch_mod.check_scene(root / "nerf_synthetic" / scene, scene)
 
 
 def test_a_missing_file_names_the_manual_source(server, tmp_path, capsys):

@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from nsplat.engine import LogConfig
 from nsplat.fitting import FitConfig, fit
 from nsplat.fitting.densify import DensifyConfig, DensityStats, densify
-from nsplat.render import RenderConfig, render_views
+from nsplat.render.renderer import RenderConfig, render_views
+from nsplat.run.engine import LogConfig
 from nsplat.scene import SceneConfig, SurfelScene
 from nsplat.tasks.reconstruct import fibonacci_sphere
 from tests.test_reconstruct import OFF, _lr, _tiny_problem, _views

@@ -34,11 +34,11 @@ import torch
 import yaml
 from torch.distributed import TCPStore
 
-from nsplat.checkpoint import load_checkpoint
 from nsplat.config import load_config
-from nsplat.distributed import shard
-from nsplat.engine import host_scalars
-from nsplat.runctx import RunContext
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext
+from nsplat.run.distributed import shard
+from nsplat.run.engine import host_scalars
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.geometry import fit_geometry
@@ -65,7 +65,9 @@ def _tiny(cache: Path) -> dict:
         "task": "neural", "seed": 0,
         "data": {"procedural": {"seed": 1, "resolution": 24, "views": [6, 2, 2], "objects": 2,
                                 "cache_dir": str(cache)}},
-        "geometry": {"grid": 24, "optim": {"epochs": 2, "batch": 3, "reposition": {"every": 1},
+        # the fixed cube of the training frame (not the box from the silhouettes): its coarse hull is the ~100 points
+        "geometry": {"grid": 24, "bbox": [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5],
+                     "optim": {"epochs": 2, "batch": 3, "reposition": {"every": 1},
                                            "densify": {"enabled": True, "grad_threshold": 0.0, "max_growth": 0.2,
                                                        "prune_weight": 0.01}}},
         "render": {"samples": 16},
@@ -217,7 +219,7 @@ def test_killed_rank_stops_the_run_and_resume_matches(config, two_ranks, tmp_pat
 
 def _exit_probe(*args: str) -> list[list[str]]:
     """The communication threads each of 2 ranks of ``tests/distributed_exit_probe.py`` has left after
-    :func:`nsplat.distributed.shutdown`."""
+    :func:`nsplat.run.distributed.shutdown`."""
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
            "-m", "tests.distributed_exit_probe", *args]
     res = subprocess.run(cmd, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
@@ -230,7 +232,7 @@ def test_shutdown_leaves_no_communication_thread():
     """A completed distributed run exits clean: leaving the group joins its gloo threads on every rank, after
     the op has loaded ``torch._dynamo`` (whose import of ``torch.distributed.fsdp`` binds the default group).
     A group kept alive lets a gloo thread release a finished all-reduce while the interpreter exits, which
-    aborts the process; without the early import of :func:`nsplat.distributed.init_from_env` the probe sees
+    aborts the process; without the early import of :func:`nsplat.run.distributed.init_from_env` the probe sees
     those threads, so the check can fail."""
     assert _exit_probe() == [[], []]
     leaked = _exit_probe("--no-early-import")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from nsplat import distributed
-from nsplat.engine import Engine, LogConfig, Trainables
+from nsplat.run import distributed
+from nsplat.run.engine import Engine, LogConfig, Trainables
 
 
 class Counted(torch.Tensor):
@@ -70,7 +70,7 @@ def _segment(run_dir, payload=None) -> Trainables:
 
 
 def test_step_times_accumulate_over_the_segments_of_a_resumed_run(tmp_path):
-    from nsplat.checkpoint import load_checkpoint
+    from nsplat.run.checkpoint import load_checkpoint
 
     _busy_step.fail = True
     first = _segment(tmp_path / "run")  # killed in step 3: the checkpoint after step 3 holds steps 0-2

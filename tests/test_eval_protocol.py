@@ -1,4 +1,4 @@
-"""The evaluation protocols (:mod:`nsplat.eval_protocol`) against independent computations: the ``standard``
+"""The evaluation protocols (:mod:`nsplat.evaluation.protocol`) against independent computations: the ``standard``
 protocol's PSNR is that of the 8-bit PNGs a published table reads back, its SSIM that of 3D Gaussian
 splatting (Gaussian 11×11 window, σ 1.5, zero padding, mean of the whole map; here with SciPy's filter),
 the per-view CSV round-trips exactly, LPIPS that cannot run is a one-line note, and the comparison sheet
@@ -13,9 +13,9 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter
 
-from nsplat.comparison_sheet import MIN_PANEL, spread, write_sheet
-from nsplat.eval_protocol import read_per_view_csv, score_views, summary, summary_text, write_per_view_csv
-from nsplat.metrics_image import lpips_status
+from nsplat.evaluation.comparison_sheet import MIN_PANEL, spread, write_sheet
+from nsplat.evaluation.image_metrics import lpips_status
+from nsplat.evaluation.protocol import read_per_view_csv, score_views, summary, summary_text, write_per_view_csv
 
 
 def _pair(seed: int = 0, B: int = 3, H: int = 24, W: int = 32) -> tuple[torch.Tensor, torch.Tensor]:

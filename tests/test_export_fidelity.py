@@ -1,4 +1,4 @@
-"""What a 3DGS renderer shows of nsplat's exports and nsplat of 3DGS files (:mod:`nsplat.gaussian_kernel`), checked
+"""What a 3DGS renderer shows of nsplat's exports and nsplat of 3DGS files (:mod:`nsplat.gaussians.kernel`), checked
 with the 3DGS reference renderer :mod:`tests.gs_reference`, itself checked here against closed forms.
 
 With one camera the view average is that camera's own kernel, so the conversion is exact: for surfels facing
@@ -15,15 +15,15 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from nsplat.export import write_3dgs
-from nsplat.gaussian_fit import FitSettings
-from nsplat.gaussian_kernel import GS_LOWPASS, surfels_of_gaussians
-from nsplat.gaussian_ply import read_gaussian_ply, write_gaussian_ply
-from nsplat.gaussian_raster import rasterize
+from nsplat.gaussians.export import write_3dgs
+from nsplat.gaussians.fit import FitSettings
+from nsplat.gaussians.kernel import GS_LOWPASS, surfels_of_gaussians
+from nsplat.gaussians.ply import read_gaussian_ply, write_gaussian_ply
+from nsplat.gaussians.raster import rasterize
 from nsplat.ops import splat_dense
-from nsplat.render import RenderConfig
-from nsplat.sh import view_colour
-from nsplat.view_model import TrainingCameras, ViewModel
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.sh import view_colour
+from nsplat.render.view_model import TrainingCameras, ViewModel
 from tests.gs_reference import SH_C0, gaussians_of_ply, quat_to_rotmat, render_3dgs, sh_to_rgb
 
 W = H = 32
@@ -166,7 +166,7 @@ def _random_gaussians(n: int = 300, seed: int = 0) -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize("antialiased", [False, True])
 def test_differentiable_rasteriser_renders_and_differentiates_as_the_reference(antialiased):
-    """:func:`nsplat.gaussian_raster.rasterize` (pixel-Gaussian pairs) against the reference (tiles), both modes, its
+    """:func:`nsplat.gaussians.raster.rasterize` (pixel-Gaussian pairs) against the reference (tiles), both modes, its
     shortcuts on; its gradient against central differences of the reference."""
     g, (viewmat, K) = _random_gaussians(), _camera()
     viewmat, K = viewmat.double(), K.double()

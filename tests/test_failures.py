@@ -17,10 +17,10 @@ import pytest
 import torch
 import yaml
 
-from nsplat.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from nsplat.cli import main as cli_main
 from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.pointclouds import read_oriented_ply
+from nsplat.run.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from nsplat.scene import SceneConfig, SurfelScene
 from tests.conftest import write_dss_ply
 

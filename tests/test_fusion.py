@@ -1,6 +1,6 @@
 """Point-based depth fusion (nsplat.data.fusion) against exact geometry.
 
-Depth maps are ray-traced (nsplat.data.raytrace: the synthetic room of nsplat.data.room, a sphere, planes) or
+Depth maps are ray-traced (nsplat.data.raytrace: the synthetic room of nsplat.tasks.refine.room, a sphere, planes) or
 written analytically, so every valid pixel's vertex lies exactly on a known surface; the fused surfels are checked
 against the analytic surfaces (distance to the room's rectangles and boxes), the ray-traced normals, and
 independently computed confidence weights.
@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from nsplat.cameras import intrinsics_from_fov
 from nsplat.data.fusion import RADIAL_SIGMA, FusionConfig, Surfels, frame_vertices, fuse
 from nsplat.data.raytrace import Box, Material, Plane, Sphere, camera_rays, intersect
-from nsplat.data.room import room_primitives, trajectory
+from nsplat.tasks.refine.room import room_primitives, trajectory
 
 F64 = torch.float64
 #: The room's depth maps are 48×36 (f ≈ 31 px): a surface inclined more than ~43° to the image plane changes depth by

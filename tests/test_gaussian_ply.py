@@ -1,6 +1,6 @@
-"""3D Gaussian splatting's PLY (:mod:`nsplat.gaussian_ply`): the colour conversion against 3DGS's own SH
+"""3D Gaussian splatting's PLY (:mod:`nsplat.gaussians.ply`): the colour conversion against 3DGS's own SH
 evaluation (:mod:`tests.gs_reference`); ``export --format 3dgs`` of a trained point-only run read back with
-plyfile (the layout and the kernel conversion, :mod:`nsplat.gaussian_kernel`), rendered by the 3DGS reference
+plyfile (the layout and the kernel conversion, :mod:`nsplat.gaussians.kernel`), rendered by the 3DGS reference
 renderer against nsplat's render, and ``geometry.init: ply`` from that file (the inverse conversion) rendering
 the same image (the dense oracle and the sampled op, the same seed: every pixel within 1e-6 of the original
 surfels' render, float32 rounding); another tool's Gaussians (rotated in their plane) and a scanner's plain
@@ -20,12 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from nsplat.cli import main
 from nsplat.config import load_config
-from nsplat.gaussian_kernel import GS_LOWPASS, to_gaussian, view_statistics
-from nsplat.gaussian_ply import FLAT, read_gaussian_ply, to_gaussian_sh, write_gaussian_ply
-from nsplat.metrics_image import psnr
-from nsplat.render import render_views
+from nsplat.evaluation.image_metrics import psnr
+from nsplat.gaussians.kernel import GS_LOWPASS, to_gaussian, view_statistics
+from nsplat.gaussians.ply import FLAT, read_gaussian_ply, to_gaussian_sh, write_gaussian_ply
+from nsplat.render.renderer import render_views
+from nsplat.render.sh import view_colour
 from nsplat.scene import SurfelScene
-from nsplat.sh import view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.starts import geometry_scene_config, initial_geometry
@@ -60,7 +60,8 @@ def test_colour_converts_exactly_to_3dgs_sh(degree):
 def _run_point_only(tmp_path: Path, **render) -> Path:
     raw = _tiny(tmp_path / "cache", steps=0)
     raw["render"].update(render)
-    raw["geometry"] = {"grid": 24, "sh_degree": 2, "opacity": None,
+    # the fixed cube, not the box from the silhouettes: the coarse hull whose export gaps these tests measure
+    raw["geometry"] = {"grid": 24, "sh_degree": 2, "opacity": None, "bbox": [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5],
                        "optim": {"epochs": 1, "batch": 3, "reposition": {"enabled": False}, "shading": "sh"}}
     raw["eval"]["geometry"] = False
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(raw))

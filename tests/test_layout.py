@@ -2,13 +2,17 @@
 
 * The package's modules (``nsplat/``, ``ops/`` and ``models/``, installed as ``nsplat.ops``/``nsplat.models``)
   import each other without a cycle, and only at module level (no import inside a function to dodge one).
+* The package is layered (:data:`LAYERS`, what nsplat/__init__.py's docstring maps): every module belongs to one
+  room, and a room imports only from rooms of lower layers; the top of ``nsplat/`` holds only the shared
+  vocabulary, the scene and the command line.
 * The viewer depends on the tasks, never the reverse: no module under ``nsplat/tasks/`` or
   ``nsplat/fitting/`` imports ``nsplat.viewer`` (at module level or inside a function). Tasks build
-  their views with :mod:`nsplat.view_model`; the viewer reaches them through the task registry.
+  their views with :mod:`nsplat.render.view_model`; the viewer reaches them through the task registry.
 * No Python module of the package (``nsplat/``, ``ops/``, ``models/``) is longer than 450 lines.
 * Tests import the package and the shared modules of the ``benchmarks`` and ``tools`` packages
   (``tools.allocation``, ``benchmarks.targets``), never a script (a module that runs as
   ``python -m benchmarks.<name>`` or ``python -m tools.<name>``).
+* The tools may use the benchmarks' shared modules; the benchmarks never import the tools (one direction only).
 """
 from __future__ import annotations
 
@@ -23,6 +27,19 @@ MAX_LINES = 450
 PACKAGES = {"nsplat": "nsplat", "ops": "nsplat.ops", "models": "nsplat.models"}
 #: The repository's folders of scripts (not installed): the benchmarks and the tools.
 SCRIPT_PACKAGES = ("benchmarks", "tools")
+#: The package's rooms, lowest layer first: a module of a room imports only rooms of strictly lower layers (and its own
+#: room). A room is a package or a module; a module belongs to the longest room that prefixes its name.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("nsplat.ops", "nsplat.models"),
+    ("nsplat.errors", "nsplat.config", "nsplat.cameras", "nsplat.points"),
+    ("nsplat.data",),
+    ("nsplat.scene",),
+    ("nsplat.render", "nsplat.evaluation", "nsplat.run"),
+    ("nsplat.gaussians", "nsplat.fitting"),
+    ("nsplat.tasks",),
+    ("nsplat.viewer",),
+    ("nsplat.cli",),
+)
 
 
 def _imported_modules(path: Path) -> list[tuple[int, str]]:
@@ -206,3 +223,75 @@ def test_tests_do_not_load_benchmark_scripts():
         bad += [f"{f.name}:{n.lineno}: path into {n.value}/" for n in ast.walk(tree)
                 if isinstance(n, ast.Constant) and n.value in SCRIPT_PACKAGES]
     assert not bad, "tests import the package or the shared modules of benchmarks/ and tools/, not scripts: " + str(bad)
+
+
+def _room(module: str, layers: tuple[tuple[str, ...], ...] = LAYERS) -> tuple[int, str] | None:
+    """``(layer, room)`` of a dotted module name: the longest room that is the module or a package above it."""
+    found = [(len(room), k, room) for k, rooms in enumerate(layers) for room in rooms
+             if module == room or module.startswith(room + ".")]
+    return max(found)[1:] if found else None
+
+
+def _layer_violations(graph: dict[str, set[str]], layers: tuple[tuple[str, ...], ...] = LAYERS) -> list[str]:
+    """``a -> b`` for every import of a module ``b`` that is not in ``a``'s room or a lower layer's."""
+    bad = []
+    for a, imported in sorted(graph.items()):
+        if _room(a, layers) is None:  # the root package (nsplat/__init__.py) or a homeless module (tested apart)
+            continue
+        la, ra = _room(a, layers)
+        for b in sorted(imported):
+            lb, rb = _room(b, layers)
+            if rb != ra and lb >= la:
+                bad.append(f"{a} ({ra}, layer {la}) -> {b} ({rb}, layer {lb})")
+    return bad
+
+
+def test_every_module_belongs_to_a_room():
+    homeless = [m for m in _package_modules() if m != "nsplat" and _room(m) is None]
+    assert not homeless, f"modules in no room of LAYERS (put them in a sub-package or add the room): {homeless}"
+
+
+def test_rooms_import_only_lower_layers():
+    bad = _layer_violations(_graph())
+    assert not bad, "imports against the layering (a room imports only rooms below it):\n" + "\n".join(bad)
+
+
+def test_the_top_of_the_package_holds_only_the_vocabulary_the_scene_and_the_command_line():
+    top = {f.stem for f in (ROOT / "nsplat").glob("*.py")} - {"__init__"}
+    rooms = {room.rpartition(".")[2] for layer in LAYERS for room in layer if room.count(".") == 1}
+    packages = {d.name for d in (ROOT / "nsplat").iterdir() if (d / "__init__.py").is_file()}
+    assert top == rooms - packages - {"ops", "models"}, f"top-level modules of nsplat/ outside LAYERS: {top}"
+    assert top == {"errors", "config", "cameras", "points", "scene", "cli"}
+
+
+def test_the_layer_check_finds_a_planted_upward_import(tmp_path):
+    for folder in PACKAGES:
+        (tmp_path / folder).mkdir()
+    for pkg in ("data", "render", "tasks"):
+        (tmp_path / "nsplat" / pkg).mkdir()
+        (tmp_path / "nsplat" / pkg / "__init__.py").write_text("")
+    (tmp_path / "nsplat" / "__init__.py").write_text("")
+    (tmp_path / "nsplat" / "data" / "views.py").write_text("from nsplat.render.video import f\n")
+    (tmp_path / "nsplat" / "render" / "video.py").write_text("from nsplat.data.views import g\n")
+    (tmp_path / "nsplat" / "tasks" / "demo.py").write_text("from nsplat.render import video\n")
+    (tmp_path / "ops" / "__init__.py").write_text("from nsplat.tasks import demo\n")
+    layers = (("nsplat.ops",), ("nsplat.data",), ("nsplat.render",), ("nsplat.tasks",))
+    assert _layer_violations(_graph(tmp_path), layers) == [
+        "nsplat.data.views (nsplat.data, layer 1) -> nsplat.render.video (nsplat.render, layer 2)",
+        "nsplat.ops (nsplat.ops, layer 0) -> nsplat.tasks.demo (nsplat.tasks, layer 3)"]
+    assert _room("nsplat.render.video", layers) == (2, "nsplat.render") and _room("nsplat.x", layers) is None
+
+
+def test_benchmarks_do_not_import_tools():
+    files = sorted((ROOT / "benchmarks").glob("*.py"))
+    assert len(files) > 10
+    bad = [f"{f.name}:{line}: {name}" for f in files for line, name in _imported_modules(f)
+           if name.split(".")[0] == "tools"]
+    assert not bad, "tools/ may import benchmarks/, never the reverse: " + str(bad)
+
+
+def test_the_fitter_reads_as_the_algorithm():
+    """:func:`nsplat.fitting.fit` stays short enough to read as the algorithm; its parts live in named helpers."""
+    tree = ast.parse((ROOT / "nsplat" / "fitting" / "fitter.py").read_text())
+    fit = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "fit")
+    assert fit.end_lineno - fit.lineno + 1 <= 80

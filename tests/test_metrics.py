@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
+from nsplat.evaluation.shape_metrics import bbox_diagonal, nn_distances, point_cloud_distances
 
 # GT: two points with a 3-4-5 bounding box, diagonal 5.
 GT = np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 0.0]])
@@ -67,7 +67,7 @@ def test_bad_input_names_argument(bad):
 
 
 def test_silhouette_band_and_error_share_by_hand():
-    from nsplat.metrics_image import error_share, silhouette_band
+    from nsplat.evaluation.image_metrics import error_share, silhouette_band
 
     masks = torch.zeros(1, 16, 16)
     masks[:, 4:12, 4:12] = 1.0  # an 8×8 square

@@ -7,9 +7,9 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from nsplat.losses import discriminator_loss, generator_loss, l1_loss
-from nsplat.metrics_image import lpips_status, psnr, ssim
+from nsplat.evaluation.image_metrics import lpips_status, psnr, ssim
 from nsplat.models import PatchDiscriminator, PatchGANConfig, UNet, UNetConfig
+from nsplat.models.losses import discriminator_loss, generator_loss, l1_loss
 
 
 @pytest.mark.parametrize("size", [(32, 32), (37, 53), (9, 70), (1, 5)])

@@ -16,19 +16,19 @@ import torch
 import yaml
 from plyfile import PlyData
 
-from nsplat.checkpoint import load_checkpoint
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config
-from nsplat.eval_protocol import read_per_view_csv
-from nsplat.gaussian_ply import read_gaussian_ply
-from nsplat.metrics_image import lpips_status
-from nsplat.runctx import RunContext
+from nsplat.evaluation.image_metrics import lpips_status, psnr
+from nsplat.evaluation.protocol import read_per_view_csv
+from nsplat.gaussians.ply import read_gaussian_ply
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext
 from nsplat.tasks import get_task
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.evaluation import render_split
 from nsplat.tasks.neural.geometry import fit_geometry
-from nsplat.tasks.neural.model import neural_scene_from
+from nsplat.tasks.neural.model import load_model, neural_scene_from
 from nsplat.tasks.neural.training import build, train_step
 
 REPO = Path(__file__).resolve().parents[1]
@@ -233,8 +233,8 @@ def test_stage1_evaluation_averages_eval_draws(cache, tmp_path):
     """The point-only model is evaluated like the U-Net's feature images: ``eval_geometry.json`` holds the PSNR
     of the mean of ``eval.draws`` surfel renders (``render_views(draws=…)``: draw j with the seeds shifted by
     j·DRAW_STRIDE), which has less sampling noise than one draw; ``draws`` < 1 is an error naming it."""
-    from nsplat.metrics_image import psnr, quantise
-    from nsplat.render import DRAW_STRIDE, render_views
+    from nsplat.evaluation.image_metrics import psnr, quantise
+    from nsplat.render.renderer import DRAW_STRIDE, render_views
     from nsplat.tasks.neural.evaluation import evaluate_geometry
 
     raw = _tiny(cache)
@@ -265,7 +265,7 @@ def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
     from each camera — so the untrained residual U-Net reproduces the stage-1 render (the same op draws:
     camera b with seed + b) — and the SH coefficients learn. Off (the default), nothing is allocated; on
     without SH stage-1 colour, a config error names the option."""
-    from nsplat.render import render_views
+    from nsplat.render.renderer import render_views
 
     raw = _tiny(cache, view_colour=True)
     raw["geometry"].update({"sh_degree": 1, "prune_opacity": 0.0})
@@ -303,7 +303,7 @@ def test_view_colour_carries_stage1_sh_colour_into_stage2(cache, tmp_path):
 def test_a_batch_of_views_renders_in_one_call_as_one_call_per_view(cache, tmp_path, monkeypatch):
     """Stage 2 renders a chunk's views in one op call with one seed per view: the feature images are those of
     one call per view (bitwise) and the gradients of every learnable tensor equal theirs to summation order."""
-    import nsplat.render as gateway
+    import nsplat.render.renderer as gateway
 
     cfg = load_config(Config, _tiny(cache))
     ctx = RunContext(run_dir=tmp_path, device=torch.device("cpu"), seed=0)
@@ -331,3 +331,32 @@ def test_a_batch_of_views_renders_in_one_call_as_one_call_per_view(cache, tmp_pa
     for got, ref in zip(grads, want):
         if ref is not None:
             torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6)  # float32: summation order only
+
+
+def test_best_val_selection_keeps_the_state_of_the_best_validation(cache, tmp_path):
+    """``neural.select: best_val``: the model evaluated after training, and by ``eval`` from the checkpoint, is
+    the state at the validation with the highest val PSNR (not the last step's), and scores that PSNR again."""
+    cfg_path = tmp_path / "tiny.yaml"
+    cfg_path.write_text(yaml.safe_dump(_tiny(cache, steps=8, select="best_val", lr=3e-2,
+                                             gan={"enabled": False}, learn={"features": 0.3})
+                                       | {"log": {"every": 1, "images": 8, "checkpoint": 4, "validate": 1,
+                                                  "progress": False}}))
+    run = tmp_path / "run"
+    assert main(_args(cfg_path, run)) == 0
+    payload = load_checkpoint(run)
+    hist = payload["extra"]["history"]
+    best = payload["extra"]["best_val"]
+    vals = [r["val_psnr"] for r in hist]
+    assert best["psnr"] == max(vals) and best["step"] == hist[vals.index(max(vals))]["step"]
+    cfg = load_config(Config, yaml.safe_load(cfg_path.read_text()))
+    ctx = RunContext(run_dir=run, device=torch.device("cpu"), seed=0)
+    model = load_model(cfg, ctx)
+    for name, value in model.state_dict().items():
+        assert torch.equal(value, best["state"][name]), name
+    if best["step"] != payload["step"]:  # the last state differs from the selected one
+        assert any(not torch.equal(payload["modules"]["model"][n], best["state"][n]) for n in best["state"])
+    val = load_views(cfg, "val", ctx.device).spread(cfg.eval.val_views)
+    rgb, _ = render_split(model, val, seed=cfg.eval_seed(), render_cfg=cfg.eval_render(), draws=cfg.eval.draws)
+    assert float(psnr(rgb, val.images).mean()) == pytest.approx(best["psnr"], abs=1e-9)
+    with pytest.raises(ConfigError, match="select"):
+        load_config(Config, {"task": "neural", "neural": {"select": "best"}})

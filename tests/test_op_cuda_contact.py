@@ -14,7 +14,7 @@ import torch
 import nsplat.ops.library as library
 from nsplat.ops import Splatter, project, sample
 from nsplat.ops.host_reads import count_host_traffic, host_read
-from nsplat.render import RenderConfig, render
+from nsplat.render.renderer import RenderConfig, render
 from tests.conftest import make_cameras, make_scene
 from tests.test_op_cuda import _assert_identical, _both, _emulate, assert_same_sample_law, emulated  # noqa: F401
 

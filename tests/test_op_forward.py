@@ -89,7 +89,7 @@ def test_backface_cull_renders_exactly_the_surfels_facing_each_camera(renderer):
     """``backface_cull=True`` equals rendering, per camera, only the surfels whose normal faces it (n_c·q < 0)
     with the same renderer (the sampled op with m >= N is exact); culled surfels get no gradient from that
     camera, and two-sided rendering (the default) differs."""
-    from nsplat.render_truncated import splat_truncated
+    from nsplat.render.truncated import splat_truncated
     fn = {"splat": lambda *a, **k: splat(*a, samples=40, **k), "dense": splat_dense,
           "truncated": splat_truncated}[renderer]
     sc = make_scene(40, 1, C=3, dtype=torch.float64)

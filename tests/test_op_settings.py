@@ -9,7 +9,7 @@ import torch
 
 from nsplat.config import ConfigError, FieldError, from_dict
 from nsplat.ops import SplatSettings, Splatter
-from nsplat.render import RenderConfig, render
+from nsplat.render.renderer import RenderConfig, render
 from tests.conftest import make_cameras, make_scene
 
 PARAMS = ("means", "normals", "scales", "opacities", "features")

@@ -1,4 +1,4 @@
-"""The point-only baseline (issue 28): view-dependent colour by spherical harmonics (``nsplat.sh``
+"""The point-only baseline (issue 28): view-dependent colour by spherical harmonics (``nsplat.render.sh``
 ``view_colour``), stage 1 alone as a model (``neural.steps: 0``), and stage 1's validation curve."""
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import yaml
 
 from nsplat.cli import main
 from nsplat.config import ConfigError, load_config, read_yaml
-from nsplat.eval_protocol import read_per_view_csv
-from nsplat.export import read_ply
-from nsplat.sh import sh_view_basis, view_channels, view_colour
+from nsplat.evaluation.protocol import read_per_view_csv
+from nsplat.gaussians.export import read_ply
+from nsplat.render.sh import sh_view_basis, view_channels, view_colour
 from nsplat.tasks.neural.config import Config
 from nsplat.viewer.runs import load_run
 from tests.test_neural import _tiny

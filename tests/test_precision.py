@@ -25,11 +25,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from nsplat import precision
 from nsplat.config import ConfigError, load_config
-from nsplat.losses import discriminator_loss, l1_loss
 from nsplat.models import PatchDiscriminator, PatchGANConfig, UNet, UNetConfig
-from nsplat.runctx import RunContext
+from nsplat.models.losses import discriminator_loss, l1_loss
+from nsplat.run.context import RunContext
+from nsplat.tasks.neural import precision
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.evaluation import render_split
@@ -90,7 +90,7 @@ def test_auto_follows_the_cpus_native_bfloat16(monkeypatch, caplog, tmp_path, ca
     monkeypatch.setattr(precision, "cpu_capabilities", lambda: frozenset(caps))
     cfg = load_config(Config, _tiny(tmp_path, steps=1))
     assert cfg.neural.precision == "auto"
-    with caplog.at_level(logging.INFO, logger="nsplat.precision"):
+    with caplog.at_level(logging.INFO, logger="nsplat.tasks.neural.precision"):
         assert precision.resolve(cfg.neural.precision, CPU) == expected
     assert re.search(rf"neural.precision: auto -> {str(expected)[6:]} \(.*{reason}", caplog.text), caplog.text
     # CUDA: float32 whatever the CPU; the fixed settings ignore the CPU.

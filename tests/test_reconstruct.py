@@ -10,15 +10,15 @@ import torch
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import ConfigError, load_config
 from nsplat.data.views import PosedViews
-from nsplat.engine import LogConfig
+from nsplat.evaluation.shape_metrics import point_cloud_distances
 from nsplat.fitting import FitConfig, MaskLossConfig, RepositionConfig, build, fit
 from nsplat.fitting.reposition import point_contributions, reposition
-from nsplat.metrics import point_cloud_distances
 from nsplat.ops import splat_dense
-from nsplat.render import RenderConfig, render_views
-from nsplat.render_truncated import splat_truncated
+from nsplat.render.renderer import RenderConfig, render_views
+from nsplat.render.shading import lambert
+from nsplat.render.truncated import splat_truncated
+from nsplat.run.engine import LogConfig
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
-from nsplat.shading import lambert
 from nsplat.tasks import get_task
 from nsplat.tasks.reconstruct import Config, fibonacci_sphere
 

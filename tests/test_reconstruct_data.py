@@ -12,17 +12,17 @@ import torch
 import yaml
 from plyfile import PlyData, PlyElement
 
-import nsplat.data.dss as dss
+import nsplat.tasks.reconstruct_views as dss
 from nsplat.cli import main as cli_main
 from nsplat.config import ConfigError
-from nsplat.data.dss import DataConfig, cached_gt_images, gt_scene, view_cameras
 from nsplat.data.pointclouds import estimate_normals, load_shape
 from nsplat.errors import DataError
-from nsplat.metrics import point_cloud_distances
+from nsplat.evaluation.shape_metrics import point_cloud_distances
 from nsplat.ops import splat_dense
-from nsplat.render import RenderConfig
-from nsplat.shading import lambert
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.shading import lambert
 from nsplat.tasks.reconstruct import Config, InitConfig, fibonacci_sphere, hull_init
+from nsplat.tasks.reconstruct_views import DataConfig, cached_gt_images, gt_scene, view_cameras
 from tests.conftest import write_dss_ply
 
 

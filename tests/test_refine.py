@@ -7,12 +7,12 @@ import json
 import pytest
 import torch
 
-from nsplat.checkpoint import load_checkpoint
 from nsplat.config import load_config, read_yaml
 from nsplat.data.paths import config_dir
-from nsplat.engine import LogConfig
-from nsplat.render import RenderConfig
-from nsplat.runctx import RunContext
+from nsplat.render.renderer import RenderConfig
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext
+from nsplat.run.engine import LogConfig
 from nsplat.scene import SceneConfig
 from nsplat.tasks import refine
 from nsplat.tasks.refine import commands

@@ -15,9 +15,9 @@ import pytest
 import torch
 import yaml
 
-from nsplat.checkpoint import load_checkpoint, rotate_checkpoints, save_checkpoint
 from nsplat.cli import main as cli_main
 from nsplat.config import ConfigError, load_config, read_yaml
+from nsplat.run.checkpoint import load_checkpoint, rotate_checkpoints, save_checkpoint
 from nsplat.tasks.demo import Config as DemoConfig
 from tests.conftest import write_dss_ply
 
@@ -103,7 +103,7 @@ def test_rotation_never_removes_the_current_run_or_latest(tmp_path):
 
 
 # ------------------------------------------------------------------------- 2. two processes, one folder
-HOLDER = "import sys, time; from nsplat.runctx import RunLock; RunLock(sys.argv[1]).acquire(); " \
+HOLDER = "import sys, time; from nsplat.run.context import RunLock; RunLock(sys.argv[1]).acquire(); " \
          "print('locked', flush=True); time.sleep(60)"
 
 
@@ -209,7 +209,7 @@ def test_resume_of_a_finished_run_says_so_and_changes_nothing(tmp_path, capsys):
 def _interrupt_at_checkpoint(monkeypatch, at_step: int, after_saving: bool) -> None:
     """Make the engine's checkpoint save at ``at_step`` raise ``KeyboardInterrupt`` (Ctrl-C), before or after
     writing."""
-    import nsplat.engine as engine
+    import nsplat.run.engine as engine
     original = engine.save_checkpoint
 
     def save(run_dir, step, state, *args, **kwargs):
@@ -324,5 +324,5 @@ def test_nested_range_errors_carry_the_section_prefix(tmp_path, capsys):
     assert code == 2 and one_line_error(err) == "config error: optim.batch: expected a value >= 1, got 0"
     with pytest.raises(ConfigError, match=r"^x\.y\.samples: expected a value >= 1, got 0"):
         from nsplat.config import from_dict
-        from nsplat.render import RenderConfig
+        from nsplat.render.renderer import RenderConfig
         from_dict(RenderConfig, {"samples": 0}, prefix="x.y.")

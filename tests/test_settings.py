@@ -26,7 +26,7 @@ import pytest
 from nsplat.cli import _configs, _parse
 from nsplat.config import ConfigError, load_config, read_yaml, to_dict
 from nsplat.ops import SplatSettings
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
 from nsplat.tasks import TASKS, get_task
 from nsplat.viewer.config import ViewerConfig, split_viewer_overrides
 

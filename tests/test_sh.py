@@ -1,10 +1,10 @@
-"""SH irradiance shading (nsplat.sh) against hand-computed values and the basis definition."""
+"""SH irradiance shading (nsplat.render.sh) against hand-computed values and the basis definition."""
 import math
 
 import pytest
 import torch
 
-from nsplat.sh import SHLighting, sh_basis, sh_irradiance, sh_shade
+from nsplat.render.sh import SHLighting, sh_basis, sh_irradiance, sh_shade
 
 
 def test_hand_computed_value_up_normal():

@@ -6,6 +6,7 @@ masks, else from random points in the cameras' common view; the config trains a 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -69,11 +70,29 @@ def _config(scene: Path, **capture) -> dict:
     return raw
 
 
-def test_transforms_config_trains_and_evaluates_from_the_common_view(scene, tmp_path):
-    raw = _config(scene)
+def _listing(scene: Path, folder: Path, frames: list[dict]) -> Path:
+    """``folder``: ``scene``'s files (linked) with a ``transforms.json`` listing ``frames`` instead."""
+    folder.mkdir()
+    for entry in scene.iterdir():
+        if entry.name != "transforms.json":
+            (folder / entry.name).symlink_to(entry)
+    meta = json.loads((scene / "transforms.json").read_text())
+    (folder / "transforms.json").write_text(json.dumps({**meta, "frames": frames}))
+    return folder
+
+
+def test_transforms_config_trains_and_evaluates_from_the_common_view(scene, tmp_path, caplog):
+    """The file lists three frames more than the folder has photos (as instant-ngp's fox does): the ten present
+    train and evaluate, with one warning."""
+    frames = json.loads((scene / "transforms.json").read_text())["frames"]
+    absent = [{**frames[i], "file_path": f"images/gone_{i}.png"} for i in range(3)]
+    raw = _config(_listing(scene, tmp_path / "scene", frames[:4] + absent + frames[4:]))
     cfg = load_config(Config, raw)
     assert cfg.data.source == "transforms" and start_kind(cfg) == "view_fill"
-    prep = prepare(cfg)
+    with caplog.at_level(logging.WARNING):
+        prep = prepare(cfg)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "3 of the 13 frames" in warnings[0] and "images/gone_0.png" in warnings[0]
     assert [len(prep.splits[k]) for k in ("train", "val", "test")] == [7, 1, 2]  # every 8th by name held out
     assert prep.splits["test"].names == ["images/test_r_0.png", "images/val_r_0.png"]  # sorted: 0 and 8
     train = load_views(cfg, "train", torch.device("cpu"))
@@ -125,3 +144,13 @@ def test_auto_start_uses_ply_file_path_moved_with_the_cameras_then_the_masks(sce
     assert start_kind(masked) == "hull"
     hull = initial_geometry(masked, load_views(masked, "train", torch.device("cpu")), seed=0)
     assert hull.num_points > masked.geometry.background.points // 4
+
+
+def test_too_few_photos_for_the_split_is_one_line_before_training(scene, tmp_path):
+    frames = json.loads((scene / "transforms.json").read_text())["frames"]
+    gone = [{**f, "file_path": f"images/gone_{i}.png"} for i, f in enumerate(frames[5:])]
+    cfg = load_config(Config, _config(_listing(scene, tmp_path / "few", frames[:5] + gone)))
+    with pytest.raises(DataError) as info:
+        prepare(cfg)
+    message = str(info.value)
+    assert "\n" not in message and "5 of the 10 frames" in message and "at least 6 are needed" in message

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from nsplat.ops.library import view_colour_op
-from nsplat.sh import view_channels, view_colour, view_colour_torch
+from nsplat.render.sh import view_channels, view_colour, view_colour_torch
 
 from .conftest import make_cameras
 

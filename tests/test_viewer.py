@@ -19,8 +19,8 @@ import yaml
 
 from nsplat.cli import main
 from nsplat.config import ConfigError
-from nsplat.export import read_npz, read_ply, surfel_arrays
-from nsplat.render import RenderConfig
+from nsplat.gaussians.export import read_npz, read_ply, surfel_arrays
+from nsplat.render.renderer import RenderConfig
 from nsplat.viewer import live
 from nsplat.viewer.camera import camera_request, pose_from_viewmat, vfov_of, viewmat_from_pose
 from nsplat.viewer.config import ViewerConfig, split_viewer_overrides

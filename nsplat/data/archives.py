@@ -32,7 +32,6 @@ class FetchError(DataError):
     """A dataset could not be fetched; the message is one line and says what to do."""
 
 
-
 def extract_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, target: Path) -> None:
     """Write one archive member to ``target``; the zip module checks its CRC-32 at the end of the read."""
     target.parent.mkdir(parents=True, exist_ok=True)

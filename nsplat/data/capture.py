@@ -13,12 +13,17 @@ splits them:
   as they are.
 * **held-out views**: every ``holdout_every``-th view by sorted name, starting with the first (the
   ``llffhold = 8`` convention of the Mip-NeRF 360 and 3DGS evaluations).
+* **views without a photo** (:func:`keep_present`): a frame or registered image whose photo is in neither folder is
+  skipped with one warning naming how many and one of them (instant-ngp's demo folders and COLMAP models made
+  before some photos were deleted list such frames), unless too few views remain for the split
+  (:func:`fewest_views`): then a one-line :class:`DataError` says how many are needed.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
 import hashlib
+import logging
 import math
 from pathlib import Path, PurePosixPath
 from typing import Sequence
@@ -35,7 +40,11 @@ from nsplat.errors import DataError
 
 #: Held-out views: every 8th by name (Mip-NeRF 360 / 3DGS).
 HOLDOUT_EVERY = 8
+#: Validation views: of the rest, every 8th from the 4th (``data.capture.val_every`` of the neural task).
+VAL_EVERY = 8
 CACHE_FOLDER = "nsplat_undistorted"
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,12 +93,15 @@ class Capture:
         test: the held-out views.
         cameras: view name → its distorted source camera as the file gives it (full resolution).
         points: the SfM points, where the source has them.
+        metadata: what the source says about the scene beyond its views, kept as given (a ``transforms.json``'s
+            ``aabb_scale``: :func:`nsplat.data.transforms_json.load_transforms`); nothing here is used to train.
     """
 
     train: PosedViews
     test: PosedViews
     cameras: dict[str, pycolmap.Camera]
     points: SfmPoints | None = None
+    metadata: dict[str, object] = dataclasses.field(default_factory=dict)
 
 
 def heldout_split(names: Sequence[str], every: int = HOLDOUT_EVERY) -> tuple[list[int], list[int]]:
@@ -100,6 +112,51 @@ def heldout_split(names: Sequence[str], every: int = HOLDOUT_EVERY) -> tuple[lis
     order = sorted(range(len(names)), key=lambda i: names[i])
     test = set(order[::every]) if every else set()
     return [i for i in order if i not in test], [i for i in order if i in test]
+
+
+def fewest_views(holdout_every: int = HOLDOUT_EVERY, val_every: int = VAL_EVERY) -> tuple[int, int, int, int]:
+    """``(views, test, val, train)``: the fewest views whose split (:func:`heldout_split`, then every ``val_every``-th
+    of the rest from the ``val_every // 2``-th for validation) leaves at least one training and one validation view
+    (and with ``holdout_every`` one test view), and how many of each that is: ``(6, 1, 1, 4)`` for 8 and 8."""
+    views = 1
+    while True:
+        test = len(range(0, views, holdout_every)) if holdout_every else 0
+        val = len(range(val_every // 2, views - test, val_every))
+        if val and views - test - val:
+            return views, test, val, views - test - val
+        views += 1
+
+
+def photo_exists(scene: Path, rel: PurePosixPath, downscale: int) -> bool:
+    """Whether the photo ``rel`` is in ``scene``, full size or as the ``<folder>_<downscale>`` copy :func:`_photo`
+    reads."""
+    if (scene / rel).is_file():
+        return True
+    head, *rest = rel.parts
+    return downscale > 1 and bool(rest) and (scene / f"{head}_{downscale}" / PurePosixPath(*rest)).is_file()
+
+
+def keep_present(scene: Path, rels: Sequence[PurePosixPath], *, downscale: int, holdout_every: int, where: Path,
+                 what: str) -> list[int]:
+    """The indices of ``rels`` (the photos of ``what``, e.g. "frames", listed in ``where``) whose photo exists.
+
+    The others are skipped with one ``logging.warning`` line naming how many and one of them; when fewer remain
+    than the split needs (:func:`fewest_views` of ``holdout_every``), a one-line :class:`DataError` says so.
+    """
+    keep = [i for i, rel in enumerate(rels) if photo_exists(scene, rel, downscale)]
+    if len(keep) == len(rels):
+        return keep
+    kept = set(keep)
+    example = next(rel for i, rel in enumerate(rels) if i not in kept)
+    missing = f"{len(rels) - len(keep)} of the {len(rels)} {what} name a photo that is not in {scene} (e.g. {example})"
+    views, test, val, train = fewest_views(holdout_every)
+    if len(keep) < views:
+        split = (f"one in {holdout_every} by name held out for testing, " if holdout_every else "") + (
+            f"one in {VAL_EVERY} of the rest for validation")
+        raise DataError(f"{where}: {missing}, which leaves {len(keep)}; at least {views} are needed ({split}: "
+                        f"{test} test, {val} validation and {train} training views); add the missing photos")
+    log.warning("%s: %s; training on the %d that have one", where, missing, len(keep))
+    return keep
 
 
 def cache_folder(scene: Path, cache_dir: str | Path | None, downscale: int) -> Path:
@@ -161,8 +218,10 @@ def _photo(scene: Path, view: SourceView, downscale: int, where: Path) -> tuple[
         raise DataError(f"{where}: image {view.name!r} not found at {path}")
     img = _read(path)
     if (img.shape[1], img.shape[0]) != (W, H):
+        turned = " (turned a quarter: photos are read as stored, without their EXIF orientation, as COLMAP, " \
+                 "instant-ngp and nerfstudio read them)" if (img.shape[0], img.shape[1]) == (W, H) else ""
         raise DataError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but camera {view.camera.camera_id} "
-                        f"of {where} is {W}x{H}")
+                        f"of {where} is {W}x{H}{turned}")
     return path, img, False
 
 
@@ -246,9 +305,9 @@ def load_views(scene: Path, views: Sequence[SourceView], *, downscale: int, cach
 
 def make_capture(scene: Path, views: Sequence[SourceView], *, downscale: int, holdout_every: int,
                  cache_dir: str | Path | None, where: Path, points: SfmPoints | None = None,
-                 masks: str | None = None) -> Capture:
+                 masks: str | None = None, metadata: dict[str, object] | None = None) -> Capture:
     """Load ``views`` (:func:`load_views`, with ``masks``) and split them by :func:`heldout_split` into a
-    :class:`Capture`."""
+    :class:`Capture` (with ``metadata``)."""
     names = [v.name for v in views]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
@@ -258,4 +317,4 @@ def make_capture(scene: Path, views: Sequence[SourceView], *, downscale: int, ho
                            where=where, masks=masks)
     n = len(train)
     return Capture(train=all_views.subset(range(n)), test=all_views.subset(range(n, len(names))),
-                   cameras={v.name: v.camera for v in views}, points=points)
+                   cameras={v.name: v.camera for v in views}, points=points, metadata=dict(metadata or {}))

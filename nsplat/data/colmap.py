@@ -4,8 +4,10 @@
 The model is read with pycolmap (after :mod:`nsplat.data.colmap_check` has checked that its files are
 whole); camera models ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL`` and ``OPENCV`` are
 accepted. COLMAP's poses are already OpenCV world→camera (``cam_from_world``), so they are used as they
-are. Photos are downscaled, undistorted (cached) and split by :mod:`nsplat.data.capture`; the SfM points
-come back too, for initialisation. Layouts and conventions: docs/capture.md.
+are. Registered images whose photo is missing are skipped with one warning unless too few remain
+(:func:`nsplat.data.capture.keep_present`). Photos are downscaled, undistorted (cached) and split by
+:mod:`nsplat.data.capture`; the SfM points come back too, for initialisation. Layouts and conventions:
+docs/capture.md.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import numpy as np
 import pycolmap
 import torch
 
-from nsplat.data.capture import HOLDOUT_EVERY, Capture, SfmPoints, SourceView, make_capture
+from nsplat.data.capture import HOLDOUT_EVERY, Capture, SfmPoints, SourceView, keep_present, make_capture
 from nsplat.data.colmap_check import check_binary, check_text
 from nsplat.errors import DataError
 
@@ -163,13 +165,16 @@ def load_colmap(scene: str | Path, *, downscale: int = 1, holdout_every: int = H
     folder = find_model(scene, sparse)
     rec, ext = read_model(folder)
     where = folder / f"images{ext}"
+    registered = [rec.images[image_id] for image_id in sorted(rec.reg_image_ids())]
+    rels = [PurePosixPath(images) / image.name for image in registered]
     views = []
-    for image_id in sorted(rec.reg_image_ids()):
-        image = rec.images[image_id]
+    for i in keep_present(scene, rels, downscale=downscale, holdout_every=holdout_every, where=where,
+                          what="registered images"):
+        image = registered[i]
         V = _viewmat(image)
         if not np.isfinite(V).all():
             raise DataError(f"{where}: image {image.name!r}: pose contains NaN or Inf")
-        views.append(SourceView(name=image.name, rel=PurePosixPath(images) / image.name,
-                                camera=copy.copy(rec.cameras[image.camera_id]), viewmat=V))
+        views.append(SourceView(name=image.name, rel=rels[i], camera=copy.copy(rec.cameras[image.camera_id]),
+                                viewmat=V))
     return make_capture(scene, views, downscale=downscale, holdout_every=holdout_every, cache_dir=cache_dir,
                         where=where, points=sfm_points(rec), masks=masks)

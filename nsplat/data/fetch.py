@@ -1,10 +1,16 @@
-"""Download the public datasets into the data root (``nsplat data fetch lego|dss|tum_*``; docs/data.md).
+"""Download the public datasets into the data root (``nsplat data fetch lego|nerf_synthetic|dss|tum_*``;
+docs/data.md).
 
 Each dataset is built in a sibling folder ``<dest>.part`` and renamed into place when complete, so the
 destination either holds the whole dataset or does not exist. Downloads go to ``<name>.part`` inside that
 folder and continue with an HTTP ``Range`` request when the command runs again; they are kept only when a
 download was cut off (or the process interrupted). Any other failure (checksum mismatch, bad archive, full
 disk) removes the partial folder and reports one line (:class:`FetchError`).
+
+The eight NeRF-synthetic scenes (:data:`~nsplat.data.nerf_scenes.NERF_SCENES`, each a dataset of its own, all
+of them together the group ``nerf_synthetic``) come from one archive: :func:`fetch_together` downloads it
+once for every scene of one command, extracts each scene into its own folder and renames it into place, and
+a partial download any earlier command of one of these scenes left behind is resumed, whichever scene it was for.
 
 Checksums: the DSS point clouds are pinned to the sha256 of the published files. The NeRF authors publish
 no checksum for ``nerf_synthetic.zip``: it is verified by the zip's own CRC-32 of every extracted file and
@@ -24,13 +30,14 @@ import os
 import shutil
 import urllib.error
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Literal
 
 from tqdm import tqdm
 
 from nsplat.data.archives import CHUNK, FetchError, check_scene, check_sequence, extract_scene, extract_sequence
+from nsplat.data.nerf_scenes import NERF_SCENES
 
 #: Seconds a connection may stay silent before the download counts as interrupted.
 TIMEOUT_S = 60.0
@@ -50,6 +57,8 @@ TUM_SEQUENCES: dict[int, tuple[str, ...]] = {
     2: ("xyz", "rpy", "desk"),
     3: ("long_office_household",),
 }
+
+
 class DownloadInterrupted(FetchError):
     """A download stopped before its end; the partial file is kept and the next run resumes it."""
 
@@ -94,9 +103,13 @@ def tum_dataset(camera: int, sequence: str) -> Dataset:
                    f"download {archive.name} by hand from {TUM_DOWNLOAD} and pass --archive FILE", "tum")
 
 
+#: The NeRF authors' archive of the eight NeRF-synthetic scenes (no checksum published).
+NERF_ARCHIVE = Remote("nerf_synthetic.zip", NERF_ZIP, None)
+
 DATASETS: dict[str, Dataset] = {
-    "lego": Dataset("nerf_synthetic/lego", (Remote("nerf_synthetic.zip", NERF_ZIP, None),), "lego",
-                    f"download nerf_synthetic.zip by hand from {NERF_FOLDER} and pass --archive FILE"),
+    **{scene: Dataset(f"nerf_synthetic/{scene}", (NERF_ARCHIVE,), scene,
+                      f"download nerf_synthetic.zip by hand from {NERF_FOLDER} and pass --archive FILE")
+       for scene in NERF_SCENES},
     "dss": Dataset("dss_pointclouds", tuple(Remote(name, f"{DSS_RAW}/{name}", sha) for name, sha in (
         ("bunny-8000.ply", "bec459fd076e3ee8871d1d23346222081d9689a8a7a71133e4f4855b5c7283a0"),
         ("teapot_normal_dense.ply", "9dcde8c6f40bf234927c2335c7be0c331e1101aab8332f6b76acbeaf6855c8f1"),
@@ -106,6 +119,13 @@ DATASETS: dict[str, Dataset] = {
     **{f"tum_fr{camera}_{sequence}": tum_dataset(camera, sequence)
        for camera, sequences in TUM_SEQUENCES.items() for sequence in sequences},
 }
+#: Names that stand for several datasets of one archive: ``nerf_synthetic`` is its eight scenes.
+GROUPS: dict[str, tuple[str, ...]] = {"nerf_synthetic": NERF_SCENES}
+
+
+def expand(names: Iterable[str]) -> list[str]:
+    """The datasets ``names`` stand for (a :data:`GROUPS` name for its members), each once, in order."""
+    return list(dict.fromkeys(member for name in names for member in GROUPS.get(name, (name,))))
 
 
 def write_error(exc: OSError, folder: Path) -> FetchError:
@@ -254,9 +274,10 @@ class Fetched:
     files: list[dict[str, object]]
 
 
-def _build(name: str, ds: Dataset, stage: Path, tree: Path, *, mirror: str | None, sha256: str | None,
-           archive: Path | None, progress: bool) -> list[dict[str, object]]:
-    """Download, verify and lay out dataset ``name`` in ``tree``; returns the per-file records."""
+def _obtain_all(ds: Dataset, stage: Path, *, mirror: str | None, sha256: str | None, archive: Path | None,
+                progress: bool) -> tuple[list[dict[str, object]], list[Path]]:
+    """Download (or take from ``archive``) and verify the files of ``ds`` in ``stage``; returns the per-file
+    records and the files."""
     records, paths = [], []
     for remote in ds.files:
         if archive is not None:
@@ -269,6 +290,12 @@ def _build(name: str, ds: Dataset, stage: Path, tree: Path, *, mirror: str | Non
                         "bytes": path.stat().st_size,
                         "checksum": "verified" if sha256 or remote.sha256 else "none published"})
         paths.append(path)
+    return records, paths
+
+
+def _lay_out(name: str, ds: Dataset, records: list[dict[str, object]], paths: list[Path], tree: Path, *,
+             progress: bool) -> None:
+    """Lay out dataset ``name`` in ``tree`` from its verified files (moved, or its scene extracted and checked)."""
     tree.mkdir()
     if ds.scene is None:
         for remote, path in zip(ds.files, paths):
@@ -278,7 +305,6 @@ def _build(name: str, ds: Dataset, stage: Path, tree: Path, *, mirror: str | Non
         layout.extract(paths[0], ds.scene, tree, progress=progress)
         layout.check(tree, f"{ds.files[0].name}: {ds.scene}/")
     (tree / "SOURCE.json").write_text(json.dumps({"dataset": name, "files": records}, indent=1) + "\n")
-    return records
 
 
 def fetch(name: str, root: Path, *, mirror: str | None = None, sha256: str | None = None,
@@ -288,15 +314,45 @@ def fetch(name: str, root: Path, *, mirror: str | None = None, sha256: str | Non
     ``mirror`` replaces the published base URLs (``<mirror>/<file name>``); ``sha256`` requires that hash of
     the archive; ``archive`` uses a local copy of it instead of downloading.
     """
-    ds = DATASETS[name]
-    if (sha256 or archive) and len(ds.files) != 1:
-        raise ValueError(f"{name}: sha256 and archive apply to a dataset of one archive")
+    return fetch_together([name], root, mirror=mirror, sha256=sha256, archive=archive, progress=progress)[0]
+
+
+def _stage(names: Sequence[str], root: Path) -> Path:
+    """Where the shared files of datasets ``names`` (all missing) are downloaded: the ``<dest>.part`` folder
+    an earlier command left for any dataset of the same files (a partial download to resume), else the
+    first dataset's."""
+    files = DATASETS[names[0]].files
+    siblings = dict.fromkeys([*names, *(n for n, d in DATASETS.items() if d.files == files and d.scene)])
+    stages = [(root / DATASETS[n].dest).with_name(Path(DATASETS[n].dest).name + ".part") for n in siblings]
+    return next((s for s in stages if s.is_dir()), stages[0])
+
+
+def fetch_together(names: Sequence[str], root: Path, *, mirror: str | None = None, sha256: str | None = None,
+                   archive: Path | None = None, progress: bool = True,
+                   report: Callable[[str, Fetched], None] | None = None) -> list[Fetched]:
+    """Fetch datasets ``names`` that share their published files (several NeRF-synthetic scenes: one
+    ``nerf_synthetic.zip``) into ``root`` with one download; returns what :func:`fetch` does, per name.
+
+    Each dataset is renamed into place as soon as it is complete (and passed to ``report``), so a failure
+    leaves the datasets before it whole and the others absent. Arguments as :func:`fetch`.
+    """
+    dss = [DATASETS[name] for name in names]
+    if len({ds.files for ds in dss}) != 1 or (len(dss) > 1 and any(ds.scene is None for ds in dss)):
+        raise ValueError(f"{', '.join(names)}: fetched together only when they are scenes of one archive")
+    if (sha256 or archive) and len(dss[0].files) != 1:
+        raise ValueError(f"{names[0]}: sha256 and archive apply to a dataset of one archive")
     if archive is not None and not archive.is_file():
         raise FetchError(f"--archive {archive}: no such file")
-    dest = root / ds.dest
-    if present(ds, dest):
-        return Fetched(dest, True, [])
-    stage = dest.with_name(dest.name + ".part")
+    done: dict[str, Fetched] = {}
+    for name, ds in zip(names, dss):
+        if present(ds, root / ds.dest):
+            done[name] = Fetched(root / ds.dest, True, [])
+            if report is not None:
+                report(name, done[name])
+    missing = [name for name in names if name not in done]
+    if not missing:
+        return [done[name] for name in names]
+    stage = _stage(missing, root)
     try:
         created = _made_dirs(stage)
     except OSError as exc:
@@ -305,12 +361,19 @@ def fetch(name: str, root: Path, *, mirror: str | None = None, sha256: str | Non
     shutil.rmtree(tree, ignore_errors=True)  # left by a killed run
     resumable = False
     try:
-        records = _build(name, ds, stage, tree, mirror=mirror, sha256=sha256, archive=archive, progress=progress)
-        os.replace(tree, dest)
+        records, paths = _obtain_all(dss[0], stage, mirror=mirror, sha256=sha256, archive=archive,
+                                     progress=progress)
+        for name in missing:
+            ds = DATASETS[name]
+            _lay_out(name, ds, records, paths, tree, progress=progress)
+            os.replace(tree, root / ds.dest)
+            done[name] = Fetched(root / ds.dest, False, records)
+            if report is not None:
+                report(name, done[name])
     except OSError as exc:
         raise write_error(exc, root) from None
     except SourceError as exc:
-        raise SourceError(f"{exc}; {ds.manual}") from None
+        raise SourceError(f"{exc}; {dss[0].manual}") from None
     except (DownloadInterrupted, KeyboardInterrupt):
         resumable = True
         raise
@@ -320,4 +383,4 @@ def fetch(name: str, root: Path, *, mirror: str | None = None, sha256: str | Non
             for folder in created[1:]:  # the parents this call created, when they stayed empty
                 if folder.is_dir() and not any(folder.iterdir()):
                     folder.rmdir()
-    return Fetched(dest, False, records)
+    return [done[name] for name in names]

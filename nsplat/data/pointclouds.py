@@ -5,7 +5,7 @@ The DSS files live in ``<data root>/dss_pointclouds/`` (by default :func:`nsplat
 Any other PLY with ``x y z`` loads through :func:`load_shape`; where it has no normals they are estimated
 (:func:`estimate_normals`). Points are used in the file's own units: the cameras are placed relative to the
 cloud's bounding-box centre and enclosing radius, and the reconstruction metrics are reported both raw and
-divided by the ground truth's bounding-box diagonal (:mod:`nsplat.metrics`).
+divided by the ground truth's bounding-box diagonal (:mod:`nsplat.evaluation.shape_metrics`).
 """
 from __future__ import annotations
 

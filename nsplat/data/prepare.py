@@ -1,10 +1,10 @@
-"""Downscaled copies of a NeRF-synthetic scene (``nsplat data prepare lego --resolution 400``; docs/data.md).
+"""Downscaled copies of a NeRF-synthetic scene (``nsplat data prepare <scene> --resolution 400``; docs/data.md).
 
-``<root>/nerf_synthetic/lego`` (800×800 RGBA) → ``<root>/nerf_synthetic/lego_<N>``: every frame image named
-in ``transforms_{train,val,test}.json`` is area-averaged to ``N`` pixels wide (height in proportion) on
-premultiplied colour, so that compositing the result over any background equals area-averaging the
+``<root>/nerf_synthetic/<scene>`` (800×800 RGBA; any of the eight scenes) → ``<root>/nerf_synthetic/<scene>_<N>``:
+every frame image named in ``transforms_{train,val,test}.json`` is area-averaged to ``N`` pixels wide (height in
+proportion) on premultiplied colour, so that compositing the result over any background equals area-averaging the
 composited original; the transforms are copied unchanged (``camera_angle_x`` does not depend on the size).
-The output is written to ``lego_<N>.part`` and renamed into place, so it is complete or absent.
+The output is written to ``<scene>_<N>.part`` and renamed into place, so it is complete or absent.
 """
 from __future__ import annotations
 

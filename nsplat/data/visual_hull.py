@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from nsplat.cameras import camera_centres, look_at_point
 from nsplat.data.views import PosedViews
 
 
@@ -81,6 +82,43 @@ def carve(views: PosedViews, bbox: tuple[float, ...], grid: int, alpha_threshold
         seen += inside.float()
     occ &= seen >= min_seen * len(views)
     return occ.reshape(grid, grid, grid).numpy()
+
+
+def silhouette_box(views: PosedViews, *, grid: int = 48, margin: float = 0.05, passes: int = 2,
+                   alpha_threshold: float = 0.5, dilate: int = 1, min_seen: float = 0.5) -> tuple[float, ...]:
+    """The scene's box from its cameras and silhouettes: ``(xmin, ymin, zmin, xmax, ymax, zmax)`` around the
+    volume that every view's mask covers (the visual hull), grown by one voxel and ``margin`` of its size a side.
+
+    The search starts from the cube around the point nearest to all optical axes whose half-side is the largest
+    camera distance from it (the cameras look at the object from outside it), carves it at ``grid`` voxels a
+    side with :func:`carve`, and carves again inside the box found (``passes`` times in all), so the box tightens
+    to about one voxel of the last grid whatever the scene's scale and place.
+
+    Args:
+        views: posed training images with coverage ``masks [B,H,W]``.
+        grid: voxels per side of each pass. margin: growth of the final box, a fraction of its size per side.
+        passes: carving passes (the first in the cameras' cube). alpha_threshold, dilate, min_seen: as in
+            :func:`carve`.
+
+    Raises:
+        ValueError: the hull is empty (no voxel lies inside every silhouette).
+    """
+    centre, _ = look_at_point(views.viewmats)
+    half = float((camera_centres(views.viewmats.double()) - centre).norm(dim=1).max())
+    lo, hi = centre - half, centre + half
+    for _ in range(passes):
+        box = tuple(lo.tolist() + hi.tolist())
+        occ = carve(views, box, grid, alpha_threshold, dilate, min_seen)
+        if not occ.any():
+            raise ValueError(f"the scene's box: no voxel of {[round(v, 3) for v in box]} lies inside every "
+                             "silhouette (check the masks and the cameras, or set geometry.bbox)")
+        idx = torch.from_numpy(np.argwhere(occ))
+        voxel = (hi - lo) / grid
+        new_lo = lo + (idx.min(0).values - 1) * voxel
+        new_hi = lo + (idx.max(0).values + 2) * voxel
+        lo, hi = torch.maximum(new_lo, lo), torch.minimum(new_hi, hi)
+    grow = margin * (hi - lo)
+    return tuple((lo - grow).tolist() + (hi + grow).tolist())
 
 
 def voxel_centres(bbox: tuple[float, ...], grid: int) -> torch.Tensor:

@@ -2,12 +2,12 @@
 
 * ``standard`` (the published NeRF-synthetic and Mip-NeRF 360 tables: 3D Gaussian splatting's
   ``metrics.py``, nerfbaselines): the render and the ground truth, both composited on the background,
-  are quantised to 8 bits (:func:`nsplat.metrics_image.quantise`, as writing and reading PNGs does); then
-  PSNR, SSIM over zero-padded images (:func:`nsplat.metrics_image.ssim_zero_padded`) and LPIPS with the
+  are quantised to 8 bits (:func:`nsplat.evaluation.image_metrics.quantise`, as writing and reading PNGs does); then
+  PSNR, SSIM over zero-padded images (:func:`nsplat.evaluation.image_metrics.ssim_zero_padded`) and LPIPS with the
   VGG backbone (3DGS's metrics) and the AlexNet one (gsplat's trainer, nerfbaselines), each when it runs
-  offline (:func:`nsplat.metrics_image.lpips_status`; otherwise a one-line note in its place).
+  offline (:func:`nsplat.evaluation.image_metrics.lpips_status`; otherwise a one-line note in its place).
 * ``nsplat`` (this project's figures before the protocol existed): the float render against the float
-  ground truth, PSNR and SSIM over the valid region (:func:`nsplat.metrics_image.ssim`), LPIPS likewise.
+  ground truth, PSNR and SSIM over the valid region (:func:`nsplat.evaluation.image_metrics.ssim`), LPIPS likewise.
 
 :func:`score_views` computes the per-view scores, :func:`summary` the ``metrics.json`` entries and
 :func:`write_per_view_csv` / :func:`read_per_view_csv` the per-view table (one row per view: name, PSNR,
@@ -22,7 +22,7 @@ from typing import Sequence
 
 import torch
 
-from nsplat.metrics_image import LPIPS_BACKBONES, lpips, lpips_status, psnr, quantise, ssim, ssim_zero_padded
+from nsplat.evaluation.image_metrics import LPIPS_BACKBONES, lpips, lpips_status, psnr, quantise, ssim, ssim_zero_padded
 
 PROTOCOLS = ("standard", "nsplat")
 

@@ -32,13 +32,13 @@ from typing import Iterable
 import torch
 from torch import nn
 
-from nsplat import distributed
 from nsplat.config import ConfigError, require_fields
 from nsplat.data.views import PosedViews
-from nsplat.engine import op_seed
 from nsplat.fitting.reposition import point_contributions
 from nsplat.fitting.strategy import FitState, Strategy, ViewRender
 from nsplat.ops import tangent_frame
+from nsplat.run import distributed
+from nsplat.run.engine import op_seed
 from nsplat.scene import SurfelScene
 
 

@@ -1,12 +1,13 @@
 """The surfel fitter: a :class:`~nsplat.scene.SurfelScene` fitted to posed images (paper §4).
 
 Used by the shape task (:mod:`nsplat.tasks.reconstruct`) and by stage 1 of the neural task. Each step renders
-the step's views in one op call through the gateway (:mod:`nsplat.render`; one call per view only for a strategy
+the step's views in one op call through the gateway (:mod:`nsplat.render.renderer`; one call per view only for a
+strategy
 with ``per_view``), takes the L1 distance to their images and backpropagates; Adam steps once per step, the rate
 follows :meth:`FitConfig.rate_factor` per epoch. What is optional (repositioning, density control, a mask
-term) plugs in as a :class:`~nsplat.fitting.strategy.Strategy`. The engine (:mod:`nsplat.engine`) runs the
+term) plugs in as a :class:`~nsplat.fitting.strategy.Strategy`. The engine (:mod:`nsplat.run.engine`) runs the
 steps: logging, atomic checkpoints, exact resume (also across changes of the point count). Data-parallel
-under torchrun (:mod:`nsplat.distributed`): each rank renders its share of a step's views and gradients are
+under torchrun (:mod:`nsplat.run.distributed`): each rank renders its share of a step's views and gradients are
 summed over ranks.
 """
 from __future__ import annotations
@@ -18,17 +19,17 @@ from typing import Literal
 
 import torch
 
-from nsplat import distributed
 from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.views import PosedViews
-from nsplat.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
 from nsplat.fitting.densify import Densify, DensifyConfig
 from nsplat.fitting.mask_loss import MaskLoss, MaskLossConfig
 from nsplat.fitting.reposition import Reposition, RepositionConfig
 from nsplat.fitting.strategy import FitState, Strategy, ViewRender
-from nsplat.render import RenderConfig, render_views
+from nsplat.render.renderer import RenderConfig, render_views
+from nsplat.render.view_model import cameras_of, surfel_view
+from nsplat.run import distributed
+from nsplat.run.engine import Engine, Hook, LogConfig, Trainables, checkpoint_rows, generator, latest_payload, op_seed
 from nsplat.scene import ATTRIBUTES, SurfelScene
-from nsplat.view_model import cameras_of, surfel_view
 
 #: The paper's learning rate for every attribute (attributes a scene keeps frozen are ignored).
 PAPER_LR = {"means": 0.01, "normals": 0.01, "scales": 0.01, "opacities": 0.01, "features": 0.01}
@@ -52,7 +53,7 @@ class FitConfig:
         anneal_factor: the rate factor the tail ends at, in (0, 1].
         betas: Adam decay rates.
         shading: ``lambert`` (features are albedo, shaded per camera), ``none`` (features rendered as is) or
-            ``sh`` (features are view-dependent RGB, spherical harmonics: :func:`nsplat.sh.view_colour`).
+            ``sh`` (features are view-dependent RGB, spherical harmonics: :func:`nsplat.render.sh.view_colour`).
         sh_rest_lr: with ``shading: sh``, the SH coefficients beyond the mean colour (feature channels
             ``3:``) step at this fraction (in (0, 1]) of the features' rate (3DGS: 1/20); 1: the same.
         max_scale: cap on every tangent std-dev (world units), enforced before the first render and after
@@ -150,6 +151,41 @@ def adam_step(scene: SurfelScene, optimizer: torch.optim.Optimizer, cfg: FitConf
     cap_scales(scene, cfg.max_scale)
 
 
+def _checkpoint(scene: SurfelScene, run_dir: Path, resume: bool) -> dict | None:
+    """The checkpoint payload to resume from (``None``: a fresh run); the scene is resized to its point count."""
+    payload = latest_payload(run_dir, resume)
+    if payload is not None:  # a checkpoint of an earlier version holds a MultiStepLR state: the same rates
+        payload["schedulers"]["fit"].setdefault("lr_lambdas", [None])
+    rows = checkpoint_rows(payload, "scene", "_means")
+    if rows is not None and rows != scene.num_points:  # the point count changed before the checkpoint
+        scene.resize_(rows)
+    return payload
+
+
+def _group_loss(state: FitState, strategies: list[Strategy], views_k: list[int], seeds: list[int], share: int,
+                screen: bool, background: torch.Tensor | None) -> torch.Tensor:
+    """Render the views ``views_k`` in one op call (``seeds``: one per view), add the strategies' loss terms,
+    backpropagate the loss over ``share`` (the step's batch size) and run the strategies' ``after_backward``;
+    returns the detached loss (0-dim)."""
+    views, multi = state.views, len(views_k) > 1
+    image, alpha, *means2d = render_views(
+        state.scene, views.viewmats[views_k], views.Ks[views_k], views.width, views.height, state.render_cfg,
+        seed=torch.tensor(seeds) if multi else seeds[0], shading=state.shading, background=background,
+        with_alpha=True, with_means2d=screen)
+    for m2d in means2d[0] if screen else []:  # the views' own screen-space gradients (Strategy.screen_grads)
+        m2d.retain_grad()
+    view = ViewRender(views_k, image, alpha, share, *means2d)
+    loss = (image - views.images[views_k]).abs().mean(dim=(1, 2, 3)).sum()
+    for strategy in strategies:
+        term = strategy.loss(state, view)
+        loss = loss if term is None else loss + term
+    loss = loss / view.share
+    loss.backward()
+    for strategy in strategies:
+        strategy.after_backward(state, view)
+    return loss.detach()
+
+
 def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: RenderConfig, run_dir: str | Path, *,
         log: LogConfig | None = None, seed: int = 0, resume: bool = False, background: torch.Tensor | None = None,
         validate: Hook | None = None, desc: str = "fit") -> dict[str, float]:
@@ -160,7 +196,7 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         views: target images ``[V,H,W,C]`` with their cameras.
         cfg: optimisation settings. render_cfg: the gateway's settings. log: the engine's cadences (steps).
         run_dir: TensorBoard logs go to ``run_dir/tb``, checkpoints to ``run_dir/checkpoints``.
-        seed: run seed (op seeds: :func:`nsplat.engine.op_seed` streams ``fit``, ``reposition``, ``batches``).
+        seed: run seed (op seeds: :func:`nsplat.run.engine.op_seed` streams ``fit``, ``reposition``, ``batches``).
         resume: continue from the last checkpoint in ``run_dir`` (bit-exact on the same machine).
         background: ``[C]`` colour under the splats (default: the render config's).
         validate: the engine's validation hook ``f(step, writer) -> scalars`` (e.g. shape metrics).
@@ -168,17 +204,12 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
     Returns:
         the last step's scalars, with ``time/train_s`` and ``time/train_cpu_s``: the wall and CPU seconds of the
         steps over every segment of a resumed run (CPU time from step ``time/cpu_since``, see
-        :meth:`nsplat.engine.Engine.train`).
+        :meth:`nsplat.run.engine.Engine.train`).
     """
     if cfg.max_scale > 0 and scene.cfg.scale is not None:
         raise ConfigError(f"max_scale: needs per-point scales (scene.scale: null); this scene's std-dev is the "
                           f"constant {scene.cfg.scale}")
-    payload = latest_payload(Path(run_dir), resume)
-    if payload is not None:  # a checkpoint of an earlier version holds a MultiStepLR state: the same rates
-        payload["schedulers"]["fit"].setdefault("lr_lambdas", [None])
-    rows = checkpoint_rows(payload, "scene", "_means")
-    if rows is not None and rows != scene.num_points:  # the point count changed before the checkpoint
-        scene.resize_(rows)
+    payload = _checkpoint(scene, Path(run_dir), resume)
     strategies = cfg.strategies()
     t = build(scene, cfg, seed, strategies, views)
     optimizer, scheduler = t.optimizers["fit"], t.schedulers["fit"]
@@ -200,24 +231,9 @@ def fit(scene: SurfelScene, views: PosedViews, cfg: FitConfig, render_cfg: Rende
         share = list(distributed.shard(idx.numel()))
         together, screen = not any(st.per_view for st in strategies), any(st.screen_grads for st in strategies)
         for group in ([share] if together and share else [[j] for j in share]):
-            v = [int(idx[j]) for j in group]
+            views_k = [int(idx[j]) for j in group]
             seeds = [op_seed(seed, "fit", k * cfg.batch + j) for j in group]
-            image, alpha, *means2d = render_views(
-                scene, views.viewmats[v], views.Ks[v], views.width, views.height, render_cfg,
-                seed=torch.tensor(seeds) if len(group) > 1 else seeds[0], shading=cfg.shading, background=background,
-                with_alpha=True, with_means2d=screen)
-            for m2d in means2d[0] if screen else []:  # the views' own screen-space gradients (Strategy.screen_grads)
-                m2d.retain_grad()
-            view = ViewRender(v, image, alpha, idx.numel(), *means2d)
-            loss = (image - views.images[v]).abs().mean(dim=(1, 2, 3)).sum()
-            for strategy in strategies:
-                term = strategy.loss(state, view)
-                loss = loss if term is None else loss + term
-            loss = loss / view.share
-            loss.backward()
-            loss_sum += loss.detach().double()
-            for strategy in strategies:
-                strategy.after_backward(state, view)
+            loss_sum += _group_loss(state, strategies, views_k, seeds, idx.numel(), screen, background).double()
         distributed.all_reduce_grads(optimizer)
         adam_step(scene, optimizer, cfg)
         out = distributed.all_reduce_scalars({"train/loss": loss_sum})

@@ -12,15 +12,15 @@ from typing import Literal
 
 import torch
 
-from nsplat import distributed
 from nsplat.config import require, require_fields
-from nsplat.engine import op_seed
 from nsplat.fitting.strategy import FitState, Strategy
 from nsplat.ops import tangent_frame
 from nsplat.ops.tiled import point_weights_tiled
-from nsplat.render import RenderConfig, render
+from nsplat.render.renderer import RenderConfig, render
+from nsplat.render.shading import lambert
+from nsplat.run import distributed
+from nsplat.run.engine import op_seed
 from nsplat.scene import SurfelScene
-from nsplat.shading import lambert
 
 
 @dataclasses.dataclass

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from nsplat.data.views import PosedViews
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
 from nsplat.scene import SurfelScene
 
 
@@ -35,7 +35,7 @@ class FitState:
         optimizer: Adam over the scene's learnable attributes.
         generator: the fit's CPU generator for random draws (checkpointed: exact resume).
         render_cfg: the render settings of the fit. shading: how features become colour (``lambert``,
-            ``none``, ``sh``). seed: the run seed (op seeds: :func:`nsplat.engine.op_seed`).
+            ``none``, ``sh``). seed: the run seed (op seeds: :func:`nsplat.run.engine.op_seed`).
         steps_per_epoch: steps per pass over all views. batch: views per step. epochs: epochs of the fit.
     """
 

@@ -18,11 +18,11 @@ Note: unlike :meth:`nsplat.scene.SurfelScene.save_ply` (the training-internal la
 opacity logits, raw features), every value here is op-ready.
 
 3DGS (``--format 3dgs``): 3D Gaussian splatting's ``point_cloud.ply`` layout, which Gaussian-splatting
-viewers open (:mod:`nsplat.gaussian_ply`): every surfel as a flat Gaussian with its colour as spherical
+viewers open (:mod:`nsplat.gaussians.ply`): every surfel as a flat Gaussian with its colour as spherical
 harmonics. Two files: the classic one (header ``SplatRenderMode: default``), its opacity and tangent std-devs
-converted from nsplat's low-pass-compensated kernel to 3DGS's (:mod:`nsplat.gaussian_kernel`: exact per view,
+converted from nsplat's low-pass-compensated kernel to 3DGS's (:mod:`nsplat.gaussians.kernel`: exact per view,
 averaged over the training cameras because a file holds one opacity per Gaussian) and then fitted to nsplat's
-renders of the training cameras (:mod:`nsplat.gaussian_fit`); and the antialiased one (``antialiased``; header
+renders of the training cameras (:mod:`nsplat.gaussians.fit`); and the antialiased one (``antialiased``; header
 ``SplatRenderMode: mip`` and ``train_flags antialiasing``) for rasterisers with Mip-Splatting's opacity
 compensation, which is nsplat's κ: the surfels' own opacities. What each shows is measured in docs/results.md
 ("3DGS export"). It needs a colour model: the point-only
@@ -41,10 +41,10 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from nsplat.gaussian_fit import FitSettings, Gaussians, fit_gaussians, nsplat_targets
-from nsplat.gaussian_kernel import antialiased_of_surfels, to_gaussian, view_statistics
-from nsplat.gaussian_ply import write_gaussian_ply
-from nsplat.view_model import ViewModel
+from nsplat.gaussians.fit import FitSettings, Gaussians, fit_gaussians, nsplat_targets
+from nsplat.gaussians.kernel import antialiased_of_surfels, to_gaussian, view_statistics
+from nsplat.gaussians.ply import write_gaussian_ply
+from nsplat.render.view_model import ViewModel
 
 FORMATS = ("ply", "3dgs", "npz")
 #: Default file name per format, in ``RUN/export/``.
@@ -118,13 +118,13 @@ def read_npz(path: str | Path) -> dict[str, torch.Tensor]:
 
 def write_3dgs(model: ViewModel, path: str | Path, *, antialiased: bool = False,
                fit: FitSettings | None = None) -> Path:
-    """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussian_ply`),
-    with nsplat's kernel converted to 3DGS's (opacities and scales, :mod:`nsplat.gaussian_kernel`: averaged
+    """Write ``model``'s surfels and colour in 3D Gaussian splatting's PLY layout (:mod:`nsplat.gaussians.ply`),
+    with nsplat's kernel converted to 3DGS's (opacities and scales, :mod:`nsplat.gaussians.kernel`: averaged
     over the model's training cameras, with its ``render_cfg.lowpass``).
 
     ``antialiased``: for a rasteriser with Mip-Splatting's compensation (the surfels' own opacities when the
     low-pass is 0.3; the header says so). ``fit``: then fit the Gaussians to nsplat's renders of the training
-    cameras (:mod:`nsplat.gaussian_fit`; ``None`` or 0 epochs: the conversion alone).
+    cameras (:mod:`nsplat.gaussians.fit`; ``None`` or 0 epochs: the conversion alone).
 
     Raises ``ValueError`` when the model's features are not a colour (a shader turns them into RGB) or it
     has no training cameras."""

@@ -1,12 +1,12 @@
 """Fitting an export's Gaussians to nsplat's own renders (distillation): what ``export --format 3dgs`` does after
 the kernel conversion, so that a 3DGS rasteriser shows what nsplat shows.
 
-The classic conversion (:mod:`nsplat.gaussian_kernel`) writes one opacity per Gaussian where nsplat's kernel has
+The classic conversion (:mod:`nsplat.gaussians.kernel`) writes one opacity per Gaussian where nsplat's kernel has
 a view-dependent peak; a fit can spread that error better than a mean. Starting from the converted Gaussians,
 Adam minimises the mean squared error between the differentiable 3DGS rasteriser's image
-(:func:`nsplat.gaussian_raster.rasterize`) and nsplat's render of every training camera (the op with the run's
+(:func:`nsplat.gaussians.raster.rasterize`) and nsplat's render of every training camera (the op with the run's
 evaluation settings, the mean of ``draws`` draws; no ground truth is used). It fits the opacities (logits), the
-two tangent std-devs (logs; the flat axis stays :data:`~nsplat.gaussian_ply.FLAT` of the larger), the colour as
+two tangent std-devs (logs; the flat axis stays :data:`~nsplat.gaussians.ply.FLAT` of the larger), the colour as
 degree-``sh_degree`` spherical harmonics (a 3DGS file holds degree 3 whatever the model had) and, with
 ``lr_means > 0``, the positions; rotations (normals) stay.
 """
@@ -19,12 +19,12 @@ import time
 
 import torch
 
-from nsplat.gaussian_ply import FLAT
-from nsplat.gaussian_raster import rasterize
+from nsplat.gaussians.ply import FLAT
+from nsplat.gaussians.raster import rasterize
 from nsplat.ops.projection import tangent_frame
-from nsplat.render import DRAW_STRIDE, render
-from nsplat.sh import view_channels, view_colour
-from nsplat.view_model import ViewModel
+from nsplat.render.renderer import DRAW_STRIDE, render
+from nsplat.render.sh import view_channels, view_colour
+from nsplat.render.view_model import ViewModel
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +64,9 @@ class FitSettings:
 
 @dataclasses.dataclass
 class Gaussians:
-    """Flat Gaussians as :func:`nsplat.gaussian_ply.write_gaussian_ply` writes them: ``means [N,3]``, unit
+    """Flat Gaussians as :func:`nsplat.gaussians.ply.write_gaussian_ply` writes them: ``means [N,3]``, unit
     ``normals [N,3]``, tangent std-devs ``scales [N,2]``, ``opacities [N]`` in [0, 1] and colour ``features
-    [N, 3·(L+1)²]`` (this project's SH convention, :mod:`nsplat.sh`)."""
+    [N, 3·(L+1)²]`` (this project's SH convention, :mod:`nsplat.render.sh`)."""
 
     means: torch.Tensor
     normals: torch.Tensor

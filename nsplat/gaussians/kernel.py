@@ -30,7 +30,7 @@ wherever ``o·κ̄ < 0.99``.
 What no per-Gaussian value can carry (measured in docs/results.md, "3DGS export"): κ's spread over the
 views, nsplat's per-pixel ray–plane depth order (3DGS sorts by centre depth), the op's compositing of a
 Poisson sample of ``m`` splats per pixel (3DGS composites every Gaussian above ``1/255``) and 3DGS's flat
-axis, which :mod:`nsplat.gaussian_ply` writes as a thousandth of the larger tangent std-dev.
+axis, which :mod:`nsplat.gaussians.ply` writes as a thousandth of the larger tangent std-dev.
 """
 from __future__ import annotations
 
@@ -121,7 +121,7 @@ def surfels_of_gaussians(means: torch.Tensor, normals: torch.Tensor, scales: tor
                          near: float = 0.01, far: float = 1e10,
                          antialiased: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """nsplat std-devs ``[N,2]`` and opacities ``[N]`` (float64) of 3DGS Gaussians read as surfels (``means
-    [N,3]``, ``normals [N,3]``, tangent ``scales [N,2]``, ``opacities [N]``: :func:`nsplat.gaussian_ply.
+    [N,3]``, ``normals [N,3]``, tangent ``scales [N,2]``, ``opacities [N]``: :func:`nsplat.gaussians.ply.
     read_gaussian_ply`), for cameras ``viewmats [V,4,4]``, ``Ks [V,3,3]`` of ``width × height`` and nsplat's
     low-pass ``lowpass``: :func:`from_gaussian` with κ̄ of the converted surfels (the pixel size does not
     depend on the std-devs, so two passes of :func:`view_statistics` solve it exactly).

@@ -17,8 +17,9 @@ What this module writes (:func:`write_gaussian_ply`), exactly convertible both w
   ``scale_0, scale_1`` are the surfel's tangent std-devs ``s0, s1`` and ``scale_2``, the flat normal axis, is
   :data:`FLAT` times the larger of them;
 * **colour**: 3DGS evaluates ``max(0, ½ + Σ_j Y'_j(d) c'_j)`` with its real SH basis ``Y'``, which is this
-  project's basis (:mod:`nsplat.sh`) times ``(−1)^m`` for order ``m``; the project evaluates
-  ``max(0, f_0 + Σ_{j≥1} Y_j(d) f_j)`` with the constant band folded into ``f_0`` (:func:`nsplat.sh.view_colour`),
+  project's basis (:mod:`nsplat.render.sh`) times ``(−1)^m`` for order ``m``; the project evaluates
+  ``max(0, f_0 + Σ_{j≥1} Y_j(d) f_j)`` with the constant band folded into ``f_0``
+  (:func:`nsplat.render.sh.view_colour`),
   so ``c'_0 = (f_0 − ½)/Y_0`` and ``c'_j = (−1)^m f_j``; a plain RGB colour is ``f_0`` with the higher
   bands zero. Every file has degree 3 (the layout 3DGS viewers expect); missing bands are zeros;
 * **opacity**: the logit of the opacity (clamped to ``[1e-6, 1 − 1e-6]``).
@@ -32,7 +33,7 @@ naming ``antialiasing``, else Postshot's ``antialiased 1``; a file without any i
 
 The values given are written as they are: ``export --format 3dgs`` first converts nsplat's opacities and
 std-devs to 3DGS's kernel, and ``geometry.init: ply`` converts what this module reads back
-(:mod:`nsplat.gaussian_kernel`).
+(:mod:`nsplat.gaussians.kernel`).
 
 Reading (:func:`read_gaussian_ply`, any 3DGS file): the quaternion is normalised, the normal is the axis of
 the smallest scale, and ``s0, s1`` are the std-devs of the Gaussian's in-plane covariance along the op's
@@ -53,7 +54,7 @@ from scipy.spatial.transform import Rotation
 from nsplat.data.pointclouds import read_vertex_element
 from nsplat.errors import DataError
 from nsplat.ops.projection import tangent_frame
-from nsplat.sh import MAX_VIEW_DEGREE, view_channels
+from nsplat.render.sh import MAX_VIEW_DEGREE, view_channels
 
 #: 3DGS's ``C0``: the constant SH basis function ``1/(2√π)``.
 SH_C0 = 0.5 / math.sqrt(math.pi)

@@ -1,5 +1,5 @@
 """A differentiable 3D Gaussian splatting rasteriser in plain PyTorch (CPU or GPU), for fitting an export's
-Gaussians to nsplat's renders (:mod:`nsplat.gaussian_fit`).
+Gaussians to nsplat's renders (:mod:`nsplat.gaussians.fit`).
 
 It forms the image as 3DGS's rasteriser does (Kerbl et al. 2023; the same rules as the test suite's independent
 reference, ``tests/gs_reference.py``, which checks it): EWA projection ``Σ' = J W Σ Wᵀ Jᵀ + 0.3·I`` with ``t_x/t_z``,

@@ -3,7 +3,7 @@ filters and the viewer go through (docs/architecture.md).
 
 ``RenderConfig.renderer`` picks the sampled op (``splat``, :func:`nsplat.ops.splat`, the target), the
 dense oracle (``dense``, :func:`nsplat.ops.splat_dense`) or the truncated baseline (``truncated``,
-:func:`nsplat.render_truncated.splat_truncated`). Every setting of the op lives here, once; the speed
+:func:`nsplat.render.truncated.splat_truncated`). Every setting of the op lives here, once; the speed
 knobs measured in docs/tradeoffs.md (``deterministic``, ``hermite_order``/``hermite_tol``) are one config
 line each. :func:`render_views` adds per-camera Lambert shading of albedo scenes.
 """
@@ -16,10 +16,10 @@ import torch
 
 from nsplat.config import FieldError, require, require_fields
 from nsplat.ops import SplatOutput, SplatSettings, splat, splat_dense
-from nsplat.render_truncated import splat_truncated
+from nsplat.render.sh import view_colour
+from nsplat.render.shading import lambert
+from nsplat.render.truncated import splat_truncated
 from nsplat.scene import SurfelScene
-from nsplat.sh import view_colour
-from nsplat.shading import lambert
 
 #: Seed offset between the independent draws of an averaged render (``draws`` > 1).
 DRAW_STRIDE = 1 << 20
@@ -113,7 +113,7 @@ def render(means: torch.Tensor, normals: torch.Tensor, scales: torch.Tensor, opa
         means ``[N,3]``, normals ``[N,3]``, scales ``[N,2]``, opacities ``[N]``, features ``[N,C]`` (or ``[B,N,C]``,
         per camera, with the renderer ``splat`` or ``dense``).
         viewmats ``[B,4,4]`` (OpenCV world→camera), Ks ``[B,3,3]``; width, height in pixels.
-        seed: the sampled op's RNG seed (see :func:`nsplat.engine.op_seed`), or a ``[B]`` int64 tensor of one
+        seed: the sampled op's RNG seed (see :func:`nsplat.run.engine.op_seed`), or a ``[B]`` int64 tensor of one
             seed per camera (op.md §3).
         background: ``[C]`` tensor overriding ``cfg.background`` (differentiable).
         estimator: overrides ``cfg.estimator``.
@@ -153,8 +153,8 @@ def render_views(scene: SurfelScene, viewmats: torch.Tensor, Ks: torch.Tensor, w
     evaluation renders of the stochastic op, at ``draws`` times the cost.
 
     With ``shading="lambert"`` the scene features are albedo and are shaded per camera with the
-    paper's camera-relative lights (:func:`nsplat.shading.lambert`); with ``shading="sh"`` they are
-    view-dependent RGB (spherical harmonics, :func:`nsplat.sh.view_colour`) evaluated per camera. Either way the
+    paper's camera-relative lights (:func:`nsplat.render.shading.lambert`); with ``shading="sh"`` they are
+    view-dependent RGB (spherical harmonics, :func:`nsplat.render.sh.view_colour`) evaluated per camera. Either way the
     cameras' colours ``[B,N,3]`` are rendered in one op call (per-camera features) with the renderer ``splat``,
     camera ``b`` with op seed ``seed + b`` (as the only camera of a call with that seed; other renderers: one call
     per camera). With ``shading="none"`` the cameras are rendered in one op call. ``seed`` may be a ``[B]`` int64

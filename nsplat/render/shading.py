@@ -12,7 +12,7 @@ z forward, so the headlight direction is ``(0, 0, -1)``, "above" is ``(0, -1, 0)
 
 Because the lights move with the camera, the shaded colour depends on the camera: :func:`lambert`
 returns one feature tensor per camera ``[B, N, C]``, which the op takes as per-camera features (one call for
-all cameras, :func:`nsplat.render.render_views`).
+all cameras, :func:`nsplat.render.renderer.render_views`).
 """
 from __future__ import annotations
 

@@ -18,10 +18,10 @@ from typing import Callable
 
 import torch
 
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.sh import view_colour
+from nsplat.render.shading import lambert
 from nsplat.scene import SurfelScene
-from nsplat.sh import view_colour
-from nsplat.shading import lambert
 
 
 @dataclasses.dataclass
@@ -53,12 +53,12 @@ class ViewModel:
         shader: optional image-space shader ``f(feature image [1,C',H,W]) → RGB [1,3,H,W]`` (the U-Net);
             ``C' = C + 1`` when ``alpha_input`` (coverage appended). ``None``: RGB = first 3 channels.
         alpha_input: append the splatted alpha to the shader's input.
-        render_cfg: the run's render settings (:class:`nsplat.render.RenderConfig`); the viewer starts from
+        render_cfg: the run's render settings (:class:`nsplat.render.renderer.RenderConfig`); the viewer starts from
             them, with the ``viewer.render`` overrides (:class:`nsplat.viewer.model.RenderSettings`).
         cameras: the training cameras, or ``None``.
         task: task name (for labels). seed: op seed of every viewer render (fixed: same camera, same image).
         sh_degree: ``features`` hold a view-dependent colour of this spherical-harmonics degree
-            (``3·(L+1)²`` channels, :func:`nsplat.sh.view_colour`), or ``None`` (RGB albedo, or learned
+            (``3·(L+1)²`` channels, :func:`nsplat.render.sh.view_colour`), or ``None`` (RGB albedo, or learned
             features when there is a ``shader``).
     """
 
@@ -101,7 +101,7 @@ def surfel_view(scene: SurfelScene, cameras: TrainingCameras | None, *, shading:
                 background: torch.Tensor | None = None, render_cfg: RenderConfig | None = None, task: str = "",
                 seed: int = 0) -> ViewModel:
     """View of RGB surfels; ``shading="lambert"`` shades them with the paper's camera-relative lights,
-    ``shading="sh"`` evaluates their view-dependent colour (:func:`nsplat.sh.view_colour`) per camera."""
+    ``shading="sh"`` evaluates their view-dependent colour (:func:`nsplat.render.sh.view_colour`) per camera."""
     colours = None
     if shading == "lambert":
         colours = lambert

@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from nsplat.runctx import pid_alive
+from nsplat.run.context import pid_alive
 
 
 class CheckpointError(RuntimeError):

@@ -4,32 +4,32 @@
 * :class:`Trainables` — what a task's ``build`` returns: modules, optimisers, schedulers, the batch
   generator and JSON-like ``extra`` state; its :meth:`~Trainables.payload` is the one checkpoint payload
   ``{step, modules, optimizers, schedulers, generator, extra}`` (RNG states are added by
-  :func:`nsplat.checkpoint.save_checkpoint`).
+  :func:`nsplat.run.checkpoint.save_checkpoint`).
 * :class:`Engine` — the step loop with tqdm, TensorBoard, the live-view hook, timing, atomic checkpoints
   and exact resume. The task supplies its own ``step(step) -> scalars`` (GAN with two optimisers, refine's
   alternating groups and pruning, the fitter's per-view backward): the engine never looks inside.
-  Under torchrun (:mod:`nsplat.distributed`) it starts every rank from rank 0's modules, and only rank 0
+  Under torchrun (:mod:`nsplat.run.distributed`) it starts every rank from rank 0's modules, and only rank 0
   shows progress, logs, validates, writes images and checkpoints; the step itself reduces its gradients.
 * :func:`op_seed` — the op's seed for one named stream and step; :func:`write_json` — atomic JSON.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import torch
 from torch import nn
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from nsplat import distributed
-from nsplat.checkpoint import NoCheckpoint, atomic_write, load_checkpoint, save_checkpoint
 from nsplat.config import require_fields
-from nsplat.viewer import live
+from nsplat.run import distributed
+from nsplat.run.checkpoint import NoCheckpoint, atomic_write, load_checkpoint, save_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +151,21 @@ def host_scalars(scalars: Scalars) -> dict[str, float]:
     return {name: float(value) for name, value in scalars.items()}
 
 
+#: The hooks ``hook(done, view)`` run after every step of a loop that has a ``view`` (:func:`step_hook`).
+_STEP_HOOKS: list[Callable[[int, Callable[[], Any]], None]] = []
+
+
+@contextlib.contextmanager
+def step_hook(hook: Callable[[int, Callable[[], Any]], None]) -> Iterator[None]:
+    """Run ``hook(done, view)`` after every step for the duration of the block (the command line installs the
+    live viewer's :func:`nsplat.viewer.live.step` this way, so the engine never imports the viewer)."""
+    _STEP_HOOKS.append(hook)
+    try:
+        yield
+    finally:
+        _STEP_HOOKS.remove(hook)
+
+
 @dataclasses.dataclass
 class Engine:
     """The step loop (see the module docstring).
@@ -181,7 +196,8 @@ class Engine:
             validate: ``f(done, writer) -> scalars`` every ``log.validate`` steps (logged too; the first two shown on
                 the progress bar).
             images: ``f(done, writer)`` every ``log.images`` steps (image summaries).
-            view: builds the live viewer's model (the ``viewer=true`` hook, :mod:`nsplat.viewer.live`).
+            view: builds the live viewer's model, handed to the hooks installed by :func:`step_hook` (the command
+                line's ``viewer=true``: :func:`nsplat.viewer.live.step`).
 
         Under torchrun the hooks, the writer, the bar and the checkpoints are rank 0's only (the other
         ranks meet it again in the next step's all-reduce, within the process-group timeout).
@@ -214,7 +230,8 @@ class Engine:
                 if not main:
                     continue
                 if view is not None:
-                    live.step(done, view)
+                    for hook in _STEP_HOOKS:
+                        hook(done, view)
                 if logged:
                     for name, value in scalars.items():
                         writer.add_scalar(name, value, done)

@@ -2,8 +2,8 @@
 
 The config file's top-level ``task`` key selects a module; the CLI (:mod:`nsplat.cli`) dispatches to it.
 A task module satisfies :class:`Task` (docs/architecture.md "Adding a task"): everything every task does
-the same way (loop, cadences, checkpoints, resume, seeds, JSON) is the engine's (:mod:`nsplat.engine`),
-every render goes through :mod:`nsplat.render`, every loader returns :class:`nsplat.data.PosedViews`.
+the same way (loop, cadences, checkpoints, resume, seeds, JSON) is the engine's (:mod:`nsplat.run.engine`),
+every render goes through :mod:`nsplat.render.renderer`, every loader returns :class:`nsplat.data.PosedViews`.
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from types import ModuleType
 from typing import Any, Protocol
 
 from nsplat.config import ConfigError
-from nsplat.runctx import RunContext
-from nsplat.view_model import ViewModel
+from nsplat.render.view_model import ViewModel
+from nsplat.run.context import RunContext
 
 TASKS: dict[str, str] = {
     "refine": "nsplat.tasks.refine",
@@ -28,13 +28,14 @@ class Task(Protocol):
 
     Attributes:
         Config: its config dataclass (strict YAML + overrides, :mod:`nsplat.config`), with sections
-            ``render`` (:class:`nsplat.render.RenderConfig`) and ``log`` (:class:`nsplat.engine.LogConfig`).
+            ``render`` (:class:`nsplat.render.renderer.RenderConfig`) and ``log``
+            (:class:`nsplat.run.engine.LogConfig`).
 
-    Besides the methods below, a training task has ``build(cfg, ...) -> nsplat.engine.Trainables`` (its
+    Besides the methods below, a training task has ``build(cfg, ...) -> nsplat.run.engine.Trainables`` (its
     modules and optimisers; the allocation table builds through it) and a ``step`` function of its own
     signature that the engine calls once per step (``Engine.train(trainables, step)``): tasks keep their
     own step (GAN, alternating groups and pruning, per-view backward). Its ``run`` hands the engine a
-    cheap live-view builder (``Engine.train(..., view=)``: a :class:`nsplat.view_model.ViewModel` of the
+    cheap live-view builder (``Engine.train(..., view=)``: a :class:`nsplat.render.view_model.ViewModel` of the
     current state).
     """
 
@@ -48,14 +49,14 @@ class Task(Protocol):
 
     def render(self, cfg: Any, ctx: RunContext) -> Any:
         """The ``render`` command (images or video of the run's latest checkpoint). A task whose module sets
-        ``RENDER_PATHS = True`` takes a third argument, the command's :class:`nsplat.video.RenderRequest`
+        ``RENDER_PATHS = True`` takes a third argument, the command's :class:`nsplat.render.video.RenderRequest`
         (camera path, outputs, frame rate, frames, resolution); the CLI refuses those options for the others.
         A task may also provide ``point_view(cfg, ctx) -> ViewModel``: its point-only model with a colour per
         point, which ``export --format 3dgs`` writes when ``view``'s features are not a colour."""
 
     def view(self, cfg: Any, ctx: RunContext) -> ViewModel:
         """The ``view`` and ``export`` commands: the run's latest checkpoint (a task without ``build``:
-        its configured scene) as a :class:`nsplat.view_model.ViewModel` on ``ctx.device``. The viewer
+        its configured scene) as a :class:`nsplat.render.view_model.ViewModel` on ``ctx.device``. The viewer
         calls it through :func:`get_task`; tasks never import :mod:`nsplat.viewer`."""
 
 

@@ -12,14 +12,14 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from nsplat import render as gateway
 from nsplat.cameras import intrinsics_from_fov, look_at
 from nsplat.config import require, require_fields
 from nsplat.ops.validation import memory_limit
-from nsplat.render import RenderConfig, background_of
-from nsplat.report import results
-from nsplat.runctx import RunContext
-from nsplat.view_model import TrainingCameras, ViewModel
+from nsplat.render import renderer as gateway
+from nsplat.render.renderer import RenderConfig, background_of
+from nsplat.render.view_model import TrainingCameras, ViewModel
+from nsplat.run.context import RunContext
+from nsplat.run.report import results
 
 
 @dataclasses.dataclass
@@ -29,7 +29,7 @@ class Config:
     Attributes:
         task: ``demo``. seed: the scene's and the op's seed.
         points: surfels of the procedural scene. resolution: image side (px). views: cameras on the orbit.
-        render: the render settings (:class:`nsplat.render.RenderConfig`; the shipped config: the sampled op on
+        render: the render settings (:class:`nsplat.render.renderer.RenderConfig`; the shipped config: the sampled op on
             a white background).
         compare_dense: also render with the dense oracle and log the mean difference.
     """

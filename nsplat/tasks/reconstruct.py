@@ -1,9 +1,10 @@
 """Task ``reconstruct``: shape reconstruction from images (paper §4, Tables 1–3).
 
-Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.data.dss`), with their coverage. Init
+Data: ground-truth posed views of a DSS point cloud (:mod:`nsplat.tasks.reconstruct_views`), with their coverage. Init
 (``init.kind``): the surface of the training views' visual hull, or a Fibonacci sphere enclosing the object (the
 paper's). Optimisation: the surfel fitter :func:`nsplat.fitting.fit` on the run engine. Outputs in the run folder:
-``metrics.json`` (Hausdorff/Chamfer, both definitions, see :mod:`nsplat.metrics`; the held-out PSNR; ``fit_seconds`` /
+``metrics.json`` (Hausdorff/Chamfer, both definitions, see :mod:`nsplat.evaluation.shape_metrics`; the held-out PSNR;
+``fit_seconds`` /
 ``cpu_seconds`` of this process, ``train_seconds`` / ``train_cpu_seconds`` of the steps over every segment of a
 resumed run),
 ``reconstruction.ply``, ``renders/*.png`` (GT | result).
@@ -23,24 +24,25 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from nsplat import distributed, fitting
-from nsplat.checkpoint import load_checkpoint
+from nsplat import fitting
 from nsplat.config import ConfigError, require, require_fields
-from nsplat.data.dss import DataConfig, cached_views, gt_views, view_cameras
 from nsplat.data.pointclouds import PointCloud, load_shape
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import hull_points
-from nsplat.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
+from nsplat.evaluation.image_metrics import psnr
+from nsplat.evaluation.shape_metrics import bbox_diagonal, nn_distances, point_cloud_distances
 from nsplat.fitting import FitConfig, fit
-from nsplat.metrics import bbox_diagonal, nn_distances, point_cloud_distances
-from nsplat.metrics_image import psnr
 from nsplat.ops import splat_tiled
-from nsplat.render import RenderConfig
-from nsplat.report import results
-from nsplat.runctx import RunContext
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.shading import lambert
+from nsplat.render.view_model import TrainingCameras, ViewModel, surfel_view
+from nsplat.run import distributed
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext
+from nsplat.run.engine import LogConfig, Trainables, checkpoint_rows, op_seed, write_json
+from nsplat.run.report import results
 from nsplat.scene import SceneConfig, SurfelScene
-from nsplat.shading import lambert
-from nsplat.view_model import TrainingCameras, ViewModel, surfel_view
+from nsplat.tasks.reconstruct_views import DataConfig, cached_views, gt_views, view_cameras
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
@@ -83,11 +85,11 @@ class Config:
 
     Attributes:
         task: ``reconstruct``. seed: the run seed (batch order, repositioning draws, every op seed).
-        data: the ground-truth views (:class:`nsplat.data.dss.DataConfig`). init: :class:`InitConfig`.
+        data: the ground-truth views (:class:`nsplat.tasks.reconstruct_views.DataConfig`). init: :class:`InitConfig`.
         scene: which point attributes exist and are learned (:class:`nsplat.scene.SceneConfig`; RGB albedo).
-        render: the render settings (:class:`nsplat.render.RenderConfig`). optim: the fitter
+        render: the render settings (:class:`nsplat.render.renderer.RenderConfig`). optim: the fitter
             (:class:`nsplat.fitting.FitConfig`; Lambert shading). log: the cadences, ``log.validate`` the steps
-            between shape metrics (TensorBoard; :class:`nsplat.engine.LogConfig`).
+            between shape metrics (TensorBoard; :class:`nsplat.run.engine.LogConfig`).
         heldout: held-out views scored at the end (``heldout_psnr`` in ``metrics.json``: the image metric to
             select a recipe on, the GT cloud being the test). renders: the first this many of them written to PNG.
     """

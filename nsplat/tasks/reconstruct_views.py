@@ -22,15 +22,15 @@ import torch
 from tqdm import tqdm
 
 from nsplat.cameras import intrinsics_from_fov, look_at
-from nsplat.checkpoint import atomic_write
 from nsplat.config import require, require_fields
 from nsplat.data.paths import resolve
 from nsplat.data.pointclouds import PointCloud, check_shape
 from nsplat.data.views import PosedViews
 from nsplat.ops import splat_tiled
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.shading import lambert
+from nsplat.run.checkpoint import atomic_write
 from nsplat.scene import knn_spacing
-from nsplat.shading import lambert
 
 log = logging.getLogger(__name__)
 #: Bumped when ground-truth rendering changes, so stale caches are not reused.

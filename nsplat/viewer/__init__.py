@@ -7,10 +7,10 @@
 * :mod:`nsplat.viewer.live` — the training loops' hook (``python train.py ... viewer=true``).
 * :mod:`nsplat.viewer.commands` — the ``view`` / ``export`` sub-commands.
 
-The :class:`ViewModel` itself is built by the tasks (:mod:`nsplat.view_model`): the viewer depends on
+The :class:`ViewModel` itself is built by the tasks (:mod:`nsplat.render.view_model`): the viewer depends on
 the tasks, never the reverse. viser is imported only when a server starts.
 """
-from nsplat.view_model import TrainingCameras, ViewModel
+from nsplat.render.view_model import TrainingCameras, ViewModel
 from nsplat.viewer.config import ViewerConfig
 from nsplat.viewer.model import RenderSettings, ViewImages, render_view, to_display
 

@@ -8,9 +8,10 @@ Usage::
 
 ``view`` takes the viewer's settings as ``viewer.<key>=value`` (:class:`nsplat.viewer.config.ViewerConfig`, the
 same names as ``viewer=true`` on a training command). ``export`` prints the written file on stdout; ``3dgs``
-writes the run's point-only model with nsplat's kernel converted to 3DGS's (:mod:`nsplat.export`; a neural run's
+writes the run's point-only model with nsplat's kernel converted to 3DGS's (:mod:`nsplat.gaussians.export`; a neural
+run's
 U-Net is not in the file): by default for classic 3DGS viewers, fitted to nsplat's renders of the training
-cameras for ``--fit-epochs`` epochs (:mod:`nsplat.gaussian_fit`; 0: the conversion alone); with
+cameras for ``--fit-epochs`` epochs (:mod:`nsplat.gaussians.fit`; 0: the conversion alone); with
 ``--antialiased`` for viewers with Mip-Splatting's compensation (the surfels' own opacities, no fit unless
 ``--fit-epochs`` asks). Bad input (missing run folder, no checkpoint, unknown format, a bad setting, an output
 path that cannot be written) is reported on one line, exit status 2.
@@ -28,9 +29,9 @@ import torch
 
 from nsplat.config import ConfigError
 from nsplat.errors import DataError
-from nsplat.export import FILE_NAMES, FORMATS, export
-from nsplat.gaussian_fit import FitSettings
-from nsplat.runctx import RunFolderError
+from nsplat.gaussians.export import FILE_NAMES, FORMATS, export
+from nsplat.gaussians.fit import FitSettings
+from nsplat.run.context import RunFolderError
 from nsplat.viewer.config import split_viewer_overrides
 from nsplat.viewer.runs import RunError, load_run
 from nsplat.viewer.server import serve

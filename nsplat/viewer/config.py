@@ -12,7 +12,7 @@ import dataclasses
 from typing import Any
 
 from nsplat.config import ConfigError, from_dict, parse_override, require, require_fields, to_dict
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
 
 
 @dataclasses.dataclass

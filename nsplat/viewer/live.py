@@ -1,7 +1,7 @@
 """Live view while training: ``python train.py ... viewer=true``.
 
 The training loops call :func:`step` once per optimisation step with a cheap *source* (a callable
-returning the current :class:`~nsplat.view_model.ViewModel`). Without an active session it is a
+returning the current :class:`~nsplat.render.view_model.ViewModel`). Without an active session it is a
 no-op. With one, the viser server runs in its own threads (page, websocket, camera messages) and
 renders happen in the training thread, between steps, so they always see consistent parameters:
 
@@ -22,7 +22,7 @@ import logging
 import time
 from typing import Callable, Iterator
 
-from nsplat.view_model import ViewModel
+from nsplat.render.view_model import ViewModel
 from nsplat.viewer.config import ViewerConfig
 from nsplat.viewer.server import ViewerServer
 

@@ -1,10 +1,10 @@
-"""How the viewer renders a :class:`~nsplat.view_model.ViewModel`: the pure render function.
+"""How the viewer renders a :class:`~nsplat.render.view_model.ViewModel`: the pure render function.
 
 :func:`render_view` maps one camera (OpenCV ``viewmat [4,4]`` world→camera, ``K [3,3]`` in pixels,
 ``width``, ``height``) and :class:`RenderSettings` to :class:`ViewImages` (RGB, feature preview,
 alpha, depth). The web server, the live training view and the tests all call it, so "what the
 browser shows" and "a direct render of that camera" are the same computation. The tasks build the
-:class:`~nsplat.view_model.ViewModel` (:mod:`nsplat.view_model`); this module only renders it.
+:class:`~nsplat.render.view_model.ViewModel` (:mod:`nsplat.render.view_model`); this module only renders it.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from nsplat.render import RenderConfig, render
-from nsplat.view_model import ViewModel
+from nsplat.render.renderer import RenderConfig, render
+from nsplat.render.view_model import ViewModel
 from nsplat.viewer.config import ViewerConfig
 
 Mode = Literal["rgb", "features", "alpha", "depth"]

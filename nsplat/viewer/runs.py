@@ -1,4 +1,4 @@
-"""A run folder as a :class:`~nsplat.view_model.ViewModel`, for the ``view`` and ``export`` commands.
+"""A run folder as a :class:`~nsplat.render.view_model.ViewModel`, for the ``view`` and ``export`` commands.
 
 :func:`load_run` reads a run folder (its ``config.yaml`` and latest checkpoint) and asks the run's task
 for its view (the ``view`` function of the task contract, :mod:`nsplat.tasks`): the viewer knows the
@@ -11,11 +11,11 @@ from typing import Any
 
 import torch
 
-from nsplat.checkpoint import NoCheckpoint
 from nsplat.config import ConfigError, load_config, read_yaml
-from nsplat.runctx import RunContext
+from nsplat.render.view_model import ViewModel
+from nsplat.run.checkpoint import NoCheckpoint
+from nsplat.run.context import RunContext
 from nsplat.tasks import get_task
-from nsplat.view_model import ViewModel
 
 
 class RunError(ValueError):

@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from nsplat.view_model import ViewModel
+from nsplat.render.view_model import ViewModel
 from nsplat.viewer.camera import CameraLike, camera_request, pose_from_viewmat, vfov_of
 from nsplat.viewer.config import ViewerConfig
 from nsplat.viewer.model import MODES, RenderSettings, render_display

@@ -14,8 +14,8 @@ Evaluation (:mod:`~nsplat.tasks.neural.evaluation`): held-out PSNR/SSIM with PNG
 video. Data (:mod:`~nsplat.tasks.neural.data`): the procedural scene, NeRF-synthetic folders and COLMAP
 captures (:mod:`~nsplat.tasks.neural.capture`). Configuration: :mod:`~nsplat.tasks.neural.config`.
 
-Both stages run on the engine (:mod:`nsplat.engine`), data-parallel under torchrun
-(:mod:`nsplat.distributed`, docs/distributed.md); rank 0 alone writes the run folder and evaluates.
+Both stages run on the engine (:mod:`nsplat.run.engine`), data-parallel under torchrun
+(:mod:`nsplat.run.distributed`, docs/distributed.md); rank 0 alone writes the run folder and evaluates.
 
 Run folder: ``config.yaml``, ``geometry/`` (stage-1 logs and checkpoints), ``geometry.ply``,
 ``tb/`` (TensorBoard), ``checkpoints/`` (stage 2, atomic, exact resume), ``history.json`` (train
@@ -31,11 +31,13 @@ from pathlib import Path
 
 import torch
 
-from nsplat import distributed
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
-from nsplat.engine import Engine, checkpoint_rows, latest_payload, write_json
-from nsplat.runctx import RunContext, RunFolderError
+from nsplat.render.video import RenderRequest
+from nsplat.render.view_model import ViewModel, cameras_of, surfel_view
+from nsplat.run import distributed
+from nsplat.run.context import RunContext, RunFolderError
+from nsplat.run.engine import Engine, checkpoint_rows, latest_payload, write_json
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
@@ -45,8 +47,6 @@ from nsplat.tasks.neural.geometry import fit_geometry
 from nsplat.tasks.neural.model import Renderer, load_model, neural_scene_config, neural_scene_from, neural_view
 from nsplat.tasks.neural.starts import geometry_scene_config
 from nsplat.tasks.neural.training import build, check_parallel, train_neural
-from nsplat.video import RenderRequest
-from nsplat.view_model import ViewModel, cameras_of, surfel_view
 
 __all__ = ["Config", "DISTRIBUTED", "build", "evaluate", "point_view", "render", "run", "view"]
 
@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 
 #: Runs data-parallel under torchrun (the CLI refuses tasks without this flag).
 DISTRIBUTED = True
-#: ``render`` takes a :class:`nsplat.video.RenderRequest` (camera path, outputs, fps, frames, resolution).
+#: ``render`` takes a :class:`nsplat.render.video.RenderRequest` (camera path, outputs, fps, frames, resolution).
 RENDER_PATHS = True
 
 
@@ -119,7 +119,7 @@ def evaluate(cfg: Config, ctx: RunContext, split: str = "test", model: Renderer 
 
 def render(cfg: Config, ctx: RunContext, request: RenderRequest | None = None) -> list[Path]:
     """Videos of the trained model along a camera path, one per output (default: ``orbit.mp4``, RGB along a
-    circle of cameras around the scene; :class:`nsplat.video.RenderRequest`, :func:`write_path_videos`)."""
+    circle of cameras around the scene; :class:`nsplat.render.video.RenderRequest`, :func:`write_path_videos`)."""
     cfg = with_capture_render(cfg)
     return write_path_videos(cfg, ctx, load_model(cfg, ctx), request or RenderRequest())
 
@@ -127,7 +127,7 @@ def render(cfg: Config, ctx: RunContext, request: RenderRequest | None = None) -
 def point_view(cfg: Config, ctx: RunContext) -> ViewModel:
     """The point-only model for exports that store a colour per point (``export --format 3dgs``): stage 1's
     surfels (``geometry.ply``) with their RGB or view-dependent SH colour and the training cameras (the 3DGS
-    export's kernel conversion averages over them, :mod:`nsplat.gaussian_kernel`)."""
+    export's kernel conversion averages over them, :mod:`nsplat.gaussians.kernel`)."""
     path = ctx.run_dir / "geometry.ply"
     if not path.is_file():
         raise RunFolderError(f"--run {ctx.run_dir}: no geometry.ply yet (stage 1 has not finished)")

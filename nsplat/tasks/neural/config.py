@@ -6,111 +6,17 @@ import math
 from typing import Any, Literal
 
 from nsplat.config import ConfigError, from_dict, require, require_fields, to_dict
-from nsplat.engine import LogConfig, op_seed
 from nsplat.fitting import FitConfig
 from nsplat.models import PatchGANConfig, UNetConfig
-from nsplat.precision import Precision
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
+from nsplat.render.sh import MAX_VIEW_DEGREE, view_channels
+from nsplat.run.engine import LogConfig, op_seed
 from nsplat.scene import ATTRIBUTES
-from nsplat.sh import MAX_VIEW_DEGREE, view_channels
+from nsplat.tasks.neural.data_config import DataConfig
+from nsplat.tasks.neural.precision import Precision
 
-
-@dataclasses.dataclass
-class ProceduralConfig:
-    """The embedded procedural scene (:class:`nsplat.data.ProceduralSpec`), generated on first use.
-
-    Attributes:
-        seed: scene seed. resolution: rendered image side (px). views: (train, val, test) counts.
-        objects: number of objects. cache_dir: where scenes are generated (relative: to the repo root).
-    """
-
-    seed: int = 0
-    resolution: int = 64
-    views: tuple[int, int, int] = (40, 8, 8)
-    objects: int = 4
-    cache_dir: str = "data_cache"
-
-    def __post_init__(self) -> None:
-        require_fields(self, seed=">=0", resolution=">=1", views=">=1", objects=">=1")
-
-
-@dataclasses.dataclass
-class CaptureConfig:
-    """A capture of real photos: a COLMAP folder (``data.source: colmap``) or a nerfstudio / instant-ngp
-    ``transforms.json`` folder (``data.source: transforms``; :mod:`nsplat.tasks.neural.capture`, docs/capture.md).
-
-    Attributes:
-        downscale: photos at ``1/downscale`` (read from ``<images>_<downscale>/`` when it exists).
-        holdout_every: every n-th image by name is the test split (8: the Mip-NeRF 360 / 3DGS convention).
-        val_every: of the other images, every n-th from the (n/2)-th is the validation split (not trained on).
-        images, sparse, masks: folders relative to ``data.root``: photos and model of a COLMAP capture
-            (``sparse: null``: of the models in ``sparse/<k>``, the one with the most registered images, or
-            ``sparse`` itself), coverage masks of either kind (``<masks>/<image name>.png`` or
-            ``<masks>/<image name>``; ``null``: none; needed only by ``geometry.init: hull``).
-        file: the JSON file of a ``transforms`` capture (frames' ``file_path`` relative to ``data.root``).
-        normalize: move the world so the scene centre is the origin, z the cameras' up and their median distance
-            to the centre ``radius`` (the units of the learning rates and ``geometry.bbox``;
-            :mod:`nsplat.tasks.neural.frame`).
-        near_far: render near/far planes from the SfM points' depths (without points: from the background
-            sphere; :func:`nsplat.tasks.neural.capture.with_capture_render`).
-        cache_dir: folder of the undistorted photos (``null``: ``<root>/nsplat_undistorted``).
-    """
-
-    downscale: int = 1
-    holdout_every: int = 8
-    val_every: int = 8
-    images: str = "images"
-    sparse: str | None = None
-    masks: str | None = None
-    normalize: bool = True
-    radius: float = 3.2
-    near_far: bool = True
-    cache_dir: str | None = None
-    file: str = "transforms.json"
-
-    def __post_init__(self) -> None:
-        require_fields(self, downscale=">=1", radius=">0", holdout_every=">=2", val_every=">=2")
-
-
-#: Data sources that are captures of real photos (``data.capture`` applies).
-CAPTURE_SOURCES = ("colmap", "transforms")
-
-
-@dataclasses.dataclass
-class DataConfig:
-    """Where the posed images come from.
-
-    Attributes:
-        source: ``procedural`` (the embedded scene), ``nerf_synthetic`` (a folder at ``root``), ``colmap``
-            (a COLMAP capture at ``root``: ``sparse/<k>`` + ``images/``) or ``transforms`` (a nerfstudio or
-            instant-ngp ``transforms.json`` folder at ``root``); the captures' settings in ``capture``.
-        root: the scene folder (relative paths: to the repo root).
-        resolution: image side after resizing (``null``: as stored).
-        background: RGB composited under the RGBA images (white: NeRF's evaluation protocol).
-        train_limit, val_limit, test_limit: use only the first k frames of a split (``null``: all).
-    """
-
-    source: Literal["procedural", "nerf_synthetic", "colmap", "transforms"] = "procedural"
-    root: str | None = None
-    resolution: int | None = None
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    procedural: ProceduralConfig = dataclasses.field(default_factory=ProceduralConfig)
-    capture: CaptureConfig = dataclasses.field(default_factory=CaptureConfig)
-    train_limit: int | None = None
-    val_limit: int | None = None
-    test_limit: int | None = None
-
-    def is_capture(self) -> bool:
-        """Whether the source is a capture of real photos (``colmap`` or ``transforms``: ``capture`` applies)."""
-        return self.source in CAPTURE_SOURCES
-
-    def __post_init__(self) -> None:
-        require(self.source == "procedural" or bool(self.root), "root", f"a folder with source {self.source}",
-                self.root)
-        require(not self.is_capture() or self.resolution is None, "resolution",
-                f"null with source {self.source} (set capture.downscale)", self.resolution)
-        require_fields(self, resolution=">=8", background="unit", train_limit=">=1", val_limit=">=1",
-                       test_limit=">=1")
+#: The scene's box without silhouettes and without ``geometry.bbox``: the training frame's cube.
+FRAME_BOX = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
 
 
 @dataclasses.dataclass
@@ -205,7 +111,8 @@ class GeometryConfig:
             ``max_points`` random points in ``bbox`` that ``sfm.fill_seen`` of the training cameras see (their
             common view; opacity ``sfm.fill_opacity``, colours from the photos); ``hull`` otherwise.
         ply: path of that PLY (relative: to the repo root).
-        bbox: visual-hull bounds ``(xmin, ymin, zmin, xmax, ymax, zmax)``.
+        bbox: the scene's box ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (hull, random starts); ``null``: from the data
+            (the hull's: :func:`~nsplat.data.visual_hull.silhouette_box`; else :data:`FRAME_BOX`).
         grid: visual-hull voxels per side. alpha_threshold, dilate, min_seen: see
             :func:`nsplat.data.visual_hull.carve`. max_points: cap on the initial point count.
         scale_factor: initial surfel std-dev in units of the mean 3-NN spacing.
@@ -224,7 +131,7 @@ class GeometryConfig:
 
     init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
     ply: str | None = None
-    bbox: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
+    bbox: tuple[float, float, float, float, float, float] | None = None
     grid: int = 64
     alpha_threshold: float = 0.5
     dilate: int = 1
@@ -252,8 +159,9 @@ class GeometryConfig:
         require((self.sh_degree > 0) == (self.optim.shading == "sh"), "sh_degree",
                 f">= 1 exactly when optim.shading is sh (it is {self.optim.shading!r})", self.sh_degree)
         require(self.init != "ply" or bool(self.ply), "ply", "a PLY file with init: ply", self.ply)
-        require(all(math.isfinite(v) for v in self.bbox) and all(a < b for a, b in zip(self.bbox[:3], self.bbox[3:])),
-                "bbox", "finite (xmin, ymin, zmin, xmax, ymax, zmax) with min < max", list(self.bbox))
+        box = self.bbox or (0, 0, 0, 1, 1, 1)
+        require(all(math.isfinite(v) for v in box) and all(a < b for a, b in zip(box[:3], box[3:])), "bbox",
+                "null (from the data) or finite (xmin, ymin, zmin, xmax, ymax, zmax) with min < max", self.bbox)
         require_fields(self, grid=">=8", alpha_threshold="unit", dilate=">=0", min_seen="unit", max_points=">=1",
                        scale_factor=">0", opacity="prob", init_opacity="open", prune_opacity="unit",
                        stall_epochs=">=0")
@@ -313,7 +221,7 @@ class NeuralConfig:
         view_colour: keep stage 1's view-dependent colour (needs ``geometry.optim.shading: sh``): the
             stage-2 points also carry stage 1's higher SH coefficients (``3·((L+1)² − 1)`` more feature
             channels, learned with ``learn.features``), and the first three splatted channels are the
-            SH colour seen from each camera (:func:`nsplat.sh.view_colour`) instead of the mean colour; so
+            SH colour seen from each camera (:func:`nsplat.render.sh.view_colour`) instead of the mean colour; so
             stage 2 starts from the stage-1 render itself. ``false``: the mean colour (nothing allocated).
         learn: learnable point attributes → learning rate (others are frozen buffers).
         lr: U-Net learning rate. betas: its Adam decay rates.
@@ -322,8 +230,10 @@ class NeuralConfig:
         precision: compute precision of the U-Net and the discriminator in training and evaluation:
             ``float32``, ``bfloat16`` (autocast; the op, losses, weights, optimiser state and checkpoints stay
             float32) or ``auto`` (bfloat16 where the CPU multiplies it natively, AMX-BF16 or AVX512-BF16,
-            else float32; float32 on CUDA; chosen at start-up and logged: :mod:`nsplat.precision`).
+            else float32; float32 on CUDA; chosen at start-up and logged: :mod:`nsplat.tasks.neural.precision`).
         unet, gan: the networks.
+        select: the model is stage 2's ``last`` state or ``best_val``: the state at the validation of highest val
+            PSNR (stage 2's length chosen on the validation views; kept in the checkpoint for eval and resume).
     """
 
     steps: int = 400
@@ -341,6 +251,7 @@ class NeuralConfig:
     lr_final: float = 0.1
     ssim_weight: float = 0.0
     precision: Precision = "auto"
+    select: Literal["last", "best_val"] = "last"
     unet: UNetConfig = dataclasses.field(default_factory=UNetConfig)
     gan: GanConfig = dataclasses.field(default_factory=GanConfig)
 
@@ -365,7 +276,7 @@ class EvalConfig:
 
     Attributes:
         split: held-out split evaluated at the end of training (and by ``eval`` by default).
-        protocol: how held-out views are scored (:mod:`nsplat.eval_protocol`): ``standard`` (the published
+        protocol: how held-out views are scored (:mod:`nsplat.evaluation.protocol`): ``standard`` (the published
             tables: render and ground truth quantised to 8 bits, PSNR, SSIM over zero-padded images as in 3D
             Gaussian splatting, LPIPS VGG and AlexNet when installed) or ``nsplat`` (float images, SSIM over
             the valid region). Training-time validation (``history.json``) stays on float images.
@@ -406,8 +317,8 @@ class Config:
     Attributes:
         task: ``neural``. seed: the run seed (data order, initial features, every op seed).
         data: :class:`DataConfig`, the posed images. render: the render settings of training
-            (:class:`nsplat.render.RenderConfig`). geometry: :class:`GeometryConfig`, stage 1.
-        neural: :class:`NeuralConfig`, stage 2. log: the stage-2 cadences (:class:`nsplat.engine.LogConfig`).
+            (:class:`nsplat.render.renderer.RenderConfig`). geometry: :class:`GeometryConfig`, stage 1.
+        neural: :class:`NeuralConfig`, stage 2. log: the stage-2 cadences (:class:`nsplat.run.engine.LogConfig`).
         eval: :class:`EvalConfig`, evaluation.
     """
 

@@ -1,6 +1,6 @@
-"""The neural task's posed views: the embedded procedural scene, a NeRF-synthetic folder or a capture (COLMAP
-or ``transforms.json``, :mod:`nsplat.tasks.neural.capture`), one split at a time as
-:class:`~nsplat.data.views.PosedViews`."""
+"""The neural task's posed views: the embedded procedural scene, a NeRF-synthetic folder (``data.root``, by default
+that of ``data.scene``: :mod:`nsplat.data.nerf_scenes`) or a capture (COLMAP or ``transforms.json``,
+:mod:`nsplat.tasks.neural.capture`), one split at a time as :class:`~nsplat.data.views.PosedViews`."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from nsplat.config import ConfigError
+from nsplat.data.nerf_scenes import SCENE_ROOT
 from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve
 from nsplat.data.procedural import ProceduralSpec, ensure_scene
@@ -22,6 +23,9 @@ def scene_root(cfg: Config) -> Path:
     if d.source == "nerf_synthetic":
         root = resolve(d.root or "")
         if not (root / "transforms_train.json").is_file():
+            if d.scene is not None and d.root == SCENE_ROOT.format(scene=d.scene):
+                raise ConfigError(f"data.scene: {d.scene}: no transforms_train.json in {root}; fetch the scene with "
+                                  f"`nsplat data fetch {d.scene} --resolution 400` (or set data.root)")
             raise ConfigError(f"data.root: no transforms_train.json in {root}")
         return root
     p = d.procedural

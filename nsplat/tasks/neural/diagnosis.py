@@ -41,8 +41,9 @@ def where_surfels(cfg: Config, means: torch.Tensor, views: PosedViews) -> str:
     x = means.detach().double().cpu()
     share = share_inside(x, views)
     lo, hi = torch.quantile(x, 0.05, dim=0), torch.quantile(x, 0.95, dim=0)
+    box = "from the data" if cfg.geometry.bbox is None else list(cfg.geometry.bbox)
     text = (f"the {len(x)} surfels lie about {_fmt(x.median(0).values)} (5-95 % extent {_fmt(hi - lo)}; geometry.bbox "
-            f"{list(cfg.geometry.bbox)}); a training view sees {float(share.median()):.0%} of them (median), "
+            f"{box}); a training view sees {float(share.median()):.0%} of them (median), "
             f"{int((share < MIN_SEEN_SHARE).sum())} of {len(views)} views under {MIN_SEEN_SHARE:.0%}")
     if cfg.data.is_capture():
         prep = prepare(cfg)

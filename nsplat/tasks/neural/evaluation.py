@@ -15,23 +15,23 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nsplat.camera_paths import CameraPath, orbit, read_nerfstudio_path, smooth_path
-from nsplat.comparison_sheet import write_sheet
 from nsplat.data.paths import resolve
 from nsplat.data.views import PosedViews
-from nsplat.engine import write_json
-from nsplat.eval_protocol import protocol_images, score_views, summary, summary_text, write_per_view_csv
-from nsplat.metrics_image import error_share, silhouette_band
-from nsplat.render import RenderConfig, render_geometry, render_views
-from nsplat.report import results
-from nsplat.runctx import RunContext
+from nsplat.evaluation.comparison_sheet import write_sheet
+from nsplat.evaluation.image_metrics import error_share, silhouette_band
+from nsplat.evaluation.protocol import protocol_images, score_views, summary, summary_text, write_per_view_csv
+from nsplat.render.camera_paths import CameraPath, orbit, read_nerfstudio_path, smooth_path
+from nsplat.render.renderer import RenderConfig, render_geometry, render_views
+from nsplat.render.video import RenderRequest, depth_picture, normal_picture, to_uint8, write_video
+from nsplat.run.context import RunContext
+from nsplat.run.engine import write_json
+from nsplat.run.report import results
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import to_training_frame
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
 from nsplat.tasks.neural.model import Renderer
 from nsplat.tasks.neural.starts import geometry_scene_config
-from nsplat.video import RenderRequest, depth_picture, normal_picture, to_uint8, write_video
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def render_split(model: Renderer, views: PosedViews, seed: int, batch: int = 4,
 
 def evaluate_split(cfg: Config, ctx: RunContext, model: Renderer, views: PosedViews, split: str,
                    seed: int) -> dict:
-    """Score every view of ``views`` (split ``split``) under ``eval.protocol`` (:mod:`nsplat.eval_protocol`),
+    """Score every view of ``views`` (split ``split``) under ``eval.protocol`` (:mod:`nsplat.evaluation.protocol`),
     rendered on the configured background with op seed ``seed``.
 
     Writes to ``eval_<split>/``: ``metrics.json`` (the protocol, mean ± std per metric), ``per_view.csv``
@@ -152,7 +152,7 @@ def evaluate_geometry(cfg: Config, ctx: RunContext, splits: dict[str, PosedViews
 
 
 def path_cameras(cfg: Config, ctx: RunContext, request: RenderRequest) -> CameraPath:
-    """The cameras of ``request.path`` (:class:`nsplat.video.RenderRequest`) in the training frame, at the
+    """The cameras of ``request.path`` (:class:`nsplat.render.video.RenderRequest`) in the training frame, at the
     training images' size (a camera path file: its own) or ``request.resolution``."""
     train = load_views(cfg, "train", ctx.device)
     frames = request.frames or cfg.eval.orbit_frames
@@ -173,7 +173,7 @@ def path_cameras(cfg: Config, ctx: RunContext, request: RenderRequest) -> Camera
 def write_path_videos(cfg: Config, ctx: RunContext, model: Renderer, request: RenderRequest) -> list[Path]:
     """Render ``model`` along ``request.path`` (evaluation settings, op seed ``eval_seed() + frame``) and write one
     video per output to the run folder: ``<name>.mp4`` (RGB), ``<name>_depth.mp4``, ``<name>_normal.mp4``,
-    ``<name>_alpha.mp4`` (:mod:`nsplat.video`). Returns the written paths."""
+    ``<name>_alpha.mp4`` (:mod:`nsplat.render.video`). Returns the written paths."""
     path = path_cameras(cfg, ctx, request)
     seed, rc, F = cfg.eval_seed(), cfg.eval_render(), len(path)
     fps = request.fps or path.fps or cfg.eval.fps

@@ -32,7 +32,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from nsplat.cameras import camera_centres
+from nsplat.cameras import camera_centres, look_at_point
 from nsplat.data.capture import SfmPoints
 from nsplat.data.views import PosedViews
 from nsplat.tasks.neural.background import project
@@ -94,17 +94,6 @@ class CaptureFrame:
                 "look_at_offset_radii": offset, "axes_spread": self.spread, "camera_radius_world": self.radius,
                 "scale": self.scale, "rotation": self.rotation.tolist(), "core_points": self.core,
                 "core_extent": self.core_extent.tolist()}
-
-
-def look_at_point(viewmats: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """``(point [3] float64, spread)``: the point nearest (least squares) to the optical axes of
-    ``viewmats [V,4,4]`` and the smallest eigenvalue of the mean projector ``I − a aᵀ`` (how well the axes
-    pin it down)."""
-    C = camera_centres(viewmats.double())
-    axis = viewmats[:, 2, :3].double()
-    P = torch.eye(3, dtype=torch.float64) - axis[:, :, None] * axis[:, None, :]
-    point = torch.linalg.lstsq(P.sum(0), (P @ C[:, :, None]).sum(0)).solution[:, 0]
-    return point, float(torch.linalg.eigvalsh(P.mean(0))[0])
 
 
 def central_weight(xyz: torch.Tensor, views: PosedViews, chunk: int = 64) -> torch.Tensor:

@@ -11,14 +11,14 @@ from typing import Any
 
 import torch
 
-from nsplat import distributed
-from nsplat import render as gateway
 from nsplat.data.views import PosedViews
-from nsplat.engine import write_json
 from nsplat.errors import DataError
+from nsplat.evaluation.image_metrics import psnr
 from nsplat.fitting import fit
-from nsplat.metrics_image import psnr
-from nsplat.runctx import RunContext
+from nsplat.render import renderer as gateway
+from nsplat.run import distributed
+from nsplat.run.context import RunContext
+from nsplat.run.engine import write_json
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import prepare
 from nsplat.tasks.neural.config import Config

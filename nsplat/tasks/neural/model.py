@@ -1,7 +1,7 @@
 """The neural task's stage-2 model: the points with learned features (:func:`neural_scene_from` the stage-1
 surfels), :class:`NeuralRenderer` (points → op → U-Net → RGB), its conditional PatchGAN, the trained model
 from a checkpoint (:func:`load_model`; a point-only run's stage 1 as a :class:`PointRenderer`) and the
-renderer as a :class:`~nsplat.view_model.ViewModel`.
+renderer as a :class:`~nsplat.render.view_model.ViewModel`.
 """
 from __future__ import annotations
 
@@ -10,19 +10,19 @@ from typing import Callable, Sequence
 import torch
 from torch import nn
 
-from nsplat import precision
-from nsplat import render as gateway
-from nsplat.checkpoint import load_checkpoint
-from nsplat.engine import checkpoint_rows
 from nsplat.models import PatchDiscriminator, UNet
-from nsplat.render import DRAW_STRIDE
-from nsplat.runctx import RunContext, RunFolderError
+from nsplat.render import renderer as gateway
+from nsplat.render.renderer import DRAW_STRIDE
+from nsplat.render.sh import view_colour
+from nsplat.render.view_model import TrainingCameras, ViewModel
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext, RunFolderError
+from nsplat.run.engine import checkpoint_rows
 from nsplat.scene import SceneConfig, SurfelScene
-from nsplat.sh import view_colour
+from nsplat.tasks.neural import precision
 from nsplat.tasks.neural.capture import with_capture_render
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.starts import geometry_scene_config
-from nsplat.view_model import TrainingCameras, ViewModel
 
 
 def neural_scene_config(cfg: Config) -> SceneConfig:
@@ -68,8 +68,9 @@ class NeuralRenderer(nn.Module):
             last ``R = view_rest`` are SH coefficients, :meth:`point_features`).
         unet: the shader; input channels ``C`` (+1 coverage channel with ``alpha_input``).
         compute_dtype: the networks' compute precision (``neural.precision`` resolved on the scene's device at
-            construction, :func:`nsplat.precision.resolve`): the U-Net in :meth:`shade` and the discriminator
-            in training run under :func:`nsplat.precision.autocast` of it.
+            construction, :func:`nsplat.tasks.neural.precision.resolve`): the U-Net in :meth:`shade` and the
+            discriminator
+            in training run under :func:`nsplat.tasks.neural.precision.autocast` of it.
     """
 
     def __init__(self, scene: SurfelScene, cfg: Config) -> None:
@@ -104,7 +105,7 @@ class NeuralRenderer(nn.Module):
     def point_features(self, features: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
         """The ``[N,C]`` features splatted for camera ``viewmat [4,4]`` from the stored ``features [N,C(+R)]``:
         as stored, or with ``view_rest`` the first three replaced by the SH colour seen from that camera
-        (:func:`nsplat.sh.view_colour` of the mean colour and the last ``R`` channels)."""
+        (:func:`nsplat.render.sh.view_colour` of the mean colour and the last ``R`` channels)."""
         if not self.view_rest:
             return features
         C = self.channels
@@ -220,7 +221,7 @@ class PointRenderer(nn.Module):
                 draws: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
         """``(rgb [B,3,H,W], rgb [B,3,H,W])`` of cameras ``viewmats [B,4,4]``, ``Ks [B,3,3]`` (camera ``b`` with
         op seed ``seed + b`` where the colour is per camera; the mean of ``draws`` op draws), as
-        :func:`nsplat.render.render_views` renders stage 1 alone; the image is also the "feature image"."""
+        :func:`nsplat.render.renderer.render_views` renders stage 1 alone; the image is also the "feature image"."""
         img = gateway.render_views(self.scene, viewmats, Ks, width, height, self.render_cfg, seed=seed,
                                    shading=self.shading, background=self.background, draws=draws)
         rgb = img.permute(0, 3, 1, 2).contiguous()
@@ -232,7 +233,8 @@ Renderer = NeuralRenderer | PointRenderer
 
 
 def load_model(cfg: Config, ctx: RunContext) -> Renderer:
-    """The trained renderer from the run's latest checkpoint; with ``neural.steps: 0`` the point-only model
+    """The trained renderer from the run's latest checkpoint (the state ``neural.select`` picks); with
+    ``neural.steps: 0`` the point-only model
     from the run's ``geometry.ply`` (:class:`PointRenderer`)."""
     cfg = with_capture_render(cfg)
     if cfg.neural.steps == 0:
@@ -243,5 +245,6 @@ def load_model(cfg: Config, ctx: RunContext) -> Renderer:
     payload = load_checkpoint(ctx.run_dir, map_location="cpu")
     points = checkpoint_rows(payload, "model", "scene._means")
     model = NeuralRenderer(SurfelScene(neural_scene_config(cfg), points, device=ctx.device), cfg).to(ctx.device)
-    model.load_state_dict(payload["modules"]["model"])
+    best = payload["extra"].get("best_val") if cfg.neural.select == "best_val" else None
+    model.load_state_dict(payload["modules"]["model"] if best is None else best["state"])
     return model

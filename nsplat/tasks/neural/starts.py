@@ -18,14 +18,14 @@ from nsplat.config import ConfigError
 from nsplat.data.paths import resolve
 from nsplat.data.pointclouds import PlainCloud, check_ply_header, read_point_ply
 from nsplat.data.views import PosedViews
-from nsplat.data.visual_hull import hull_points
+from nsplat.data.visual_hull import hull_points, silhouette_box
 from nsplat.errors import DataError
-from nsplat.gaussian_kernel import surfels_of_gaussians
-from nsplat.gaussian_ply import is_gaussian_ply, read_gaussian_ply
+from nsplat.gaussians.kernel import surfels_of_gaussians
+from nsplat.gaussians.ply import is_gaussian_ply, read_gaussian_ply
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.tasks.neural.background import sphere_background
 from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points
-from nsplat.tasks.neural.config import Config
+from nsplat.tasks.neural.config import FRAME_BOX, Config
 from nsplat.tasks.neural.diagnosis import check_seen
 from nsplat.tasks.neural.sfm_init import fill_box, fill_points, plane_normals, sfm_surfels
 
@@ -71,20 +71,21 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     if kind == "sfm":
         means, normals, colours, spacing = _sfm_points(cfg, train, seed)
     elif kind == "random":
-        means, normals, colours = _random_points(g.bbox, g.max_points, seed)
+        means, normals, colours = _random_points(scene_box(cfg, train, kind), g.max_points, seed)
     elif kind == "capture_ply":
         means, normals, colours = _capture_cloud(cfg, seed)
     elif kind == "view_fill":
-        lo, hi = torch.tensor(g.bbox[:3], dtype=torch.float64), torch.tensor(g.bbox[3:], dtype=torch.float64)
+        box = scene_box(cfg, train, kind)
+        lo, hi = torch.tensor(box[:3], dtype=torch.float64), torch.tensor(box[3:], dtype=torch.float64)
         try:
             means, normals, colours = fill_points(lo, hi, train.to("cpu"), g.max_points, g.sfm.fill_seen,
                                                   torch.Generator().manual_seed(seed))
         except ValueError as exc:
             raise ConfigError(f"geometry.init: auto: {exc}") from exc
         log.info("common-view start: %d random points in the box %s seen by %.0f%% of the training views",
-                 g.max_points, list(g.bbox), 100 * g.sfm.fill_seen)
+                 g.max_points, [round(v, 4) for v in box], 100 * g.sfm.fill_seen)
     else:
-        hp = hull_points(train.to("cpu"), tuple(g.bbox), g.grid, alpha_threshold=g.alpha_threshold,
+        hp = hull_points(train.to("cpu"), scene_box(cfg, train, kind), g.grid, alpha_threshold=g.alpha_threshold,
                          dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
         log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
         means, normals, colours = hp.means, hp.normals, hp.colours
@@ -118,11 +119,11 @@ def _ply_scene(cfg: Config, path: Path, train: PosedViews, device: torch.device,
     """Stage 1's surfels from the PLY at ``path``, in whichever layout it has:
 
     * this project's own (``f_0 …``: a run's ``geometry.ply``, :meth:`SurfelScene.save_ply`): read as stored;
-    * 3D Gaussian splatting's (``f_dc_0 …``, :mod:`nsplat.gaussian_ply`; e.g. ``export --format 3dgs``):
+    * 3D Gaussian splatting's (``f_dc_0 …``, :mod:`nsplat.gaussians.ply`; e.g. ``export --format 3dgs``):
       positions, normals, tangent std-devs, opacities and the colour up to ``geometry.sh_degree`` (the mean
       colour without view dependence when ``geometry.optim.shading`` is ``none``); opacities and std-devs
       converted from 3DGS's kernel to nsplat's over the training cameras ``train`` with ``render.lowpass``
-      (:func:`nsplat.gaussian_kernel.surfels_of_gaussians`, the inverse of the export's conversion; an
+      (:func:`nsplat.gaussians.kernel.surfels_of_gaussians`, the inverse of the export's conversion; an
       antialiased file's header comments fold its per-view compensation in);
     * any other point cloud with ``x y z`` (a scanner's): its normals or, without them, plane fits of the
       ``geometry.sfm.k`` nearest neighbours; its colours or grey; std-devs from the point spacing
@@ -244,11 +245,12 @@ def _with_fill(cfg: Config, train: PosedViews, sfm: tuple[torch.Tensor, ...], ge
     """The SfM surfels ``sfm`` = ``(means [N,3], normals [N,3], colours [N,3], spacing [N])`` followed by
     ``geometry.sfm.fill`` random points (:func:`nsplat.tasks.neural.sfm_init.fill_points`) in the configured box; the
     new points' spacing is their 3-NN spacing among all ``N + fill`` points."""
-    s, g = cfg.geometry.sfm, cfg.geometry
+    s = cfg.geometry.sfm
     if s.fill_box == "points":
         lo, hi = fill_box(sfm[0], s.fill_margin)
     else:
-        lo, hi = torch.tensor(g.bbox[:3], dtype=torch.float64), torch.tensor(g.bbox[3:], dtype=torch.float64)
+        box = scene_box(cfg, train, "sfm")
+        lo, hi = torch.tensor(box[:3], dtype=torch.float64), torch.tensor(box[3:], dtype=torch.float64)
     try:
         means, normals, colours = fill_points(lo, hi, train.to("cpu"), s.fill, s.fill_seen, gen)
     except ValueError as exc:
@@ -257,6 +259,24 @@ def _with_fill(cfg: Config, train: PosedViews, sfm: tuple[torch.Tensor, ...], ge
     spacing = torch.from_numpy(knn_spacing(all_means)[len(sfm[0]):]).float()
     log.info("SfM init: %d random points added in the box %s..%s", s.fill, lo.tolist(), hi.tolist())
     return all_means, torch.cat([sfm[1], normals]), torch.cat([sfm[2], colours]), torch.cat([sfm[3], spacing])
+
+
+def scene_box(cfg: Config, train: PosedViews, kind: str) -> tuple[float, ...]:
+    """The scene's box for the start ``kind``: ``geometry.bbox`` when set; else, for the hull, the box around the
+    training silhouettes' hull (:func:`~nsplat.data.visual_hull.silhouette_box`); else
+    :data:`~nsplat.tasks.neural.config.FRAME_BOX`."""
+    g = cfg.geometry
+    if g.bbox is not None:
+        return tuple(g.bbox)
+    if kind != "hull":
+        return FRAME_BOX
+    try:
+        box = silhouette_box(train.to("cpu"), alpha_threshold=g.alpha_threshold, dilate=g.dilate,
+                             min_seen=g.min_seen)
+    except ValueError as exc:
+        raise ConfigError(f"geometry.bbox: null: {exc}") from exc
+    log.info("the scene's box from the training silhouettes: %s", [round(v, 4) for v in box])
+    return box
 
 
 def _random_points(bbox: tuple[float, ...], count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

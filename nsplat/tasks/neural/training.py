@@ -6,22 +6,27 @@ validation (``history.json``) and image summaries.
 """
 from __future__ import annotations
 
+import logging
+import math
 from typing import Any
 
 import torch
 
-from nsplat import distributed, precision
 from nsplat.config import ConfigError
 from nsplat.data.views import PosedViews
-from nsplat.engine import Engine, Trainables, op_seed, write_json
-from nsplat.losses import discriminator_loss, generator_loss
-from nsplat.metrics_image import psnr
-from nsplat.runctx import RunContext
+from nsplat.evaluation.image_metrics import psnr
+from nsplat.models.losses import discriminator_loss, generator_loss
+from nsplat.render.view_model import cameras_of
+from nsplat.run import distributed
+from nsplat.run.context import RunContext
+from nsplat.run.engine import Engine, Trainables, op_seed, write_json
 from nsplat.scene import SurfelScene
+from nsplat.tasks.neural import precision
 from nsplat.tasks.neural.config import Config, NeuralConfig
 from nsplat.tasks.neural.evaluation import render_split
 from nsplat.tasks.neural.model import NeuralRenderer, build_discriminator, neural_view
-from nsplat.view_model import cameras_of
+
+log = logging.getLogger(__name__)
 
 
 def build(cfg: Config, scene: SurfelScene, seed: int = 0) -> Trainables:
@@ -61,7 +66,7 @@ def _chunks(share: range, chunk: int | None) -> list[range]:
 def train_step(n: NeuralConfig, t: Trainables, train: PosedViews, k: int) -> dict[str, float | torch.Tensor]:
     """The task contract's ``step``: one stage-2 step (discriminator, then generator) on a random batch.
 
-    The batch's ``B`` view slots are split across ranks (:func:`nsplat.distributed.shard`) and each rank's
+    The batch's ``B`` view slots are split across ranks (:func:`nsplat.run.distributed.shard`) and each rank's
     share into chunks of ``n.chunk`` views; slot ``j`` is rendered with op seed ``op_seed(seed, "train",
     k·batch + j)`` whichever rank and chunk render it. Each chunk's losses are weighted by its share of
     ``B``, so the gradients summed over chunks and ranks (all-reduced) and the returned scalars are the
@@ -151,6 +156,9 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
                 rgb, _ = render_split(model, sub, seed=cfg.eval_seed(), render_cfg=cfg.eval_render(),
                                       draws=cfg.eval.draws)
                 rec[f"{name}_psnr"] = out[f"psnr/{name}"] = float(psnr(rgb, sub.images).mean())
+        if cfg.neural.select == "best_val" and rec["val_psnr"] > t.extra.get("best_val", {}).get("psnr", -math.inf):
+            t.extra["best_val"] = {"step": done, "psnr": rec["val_psnr"],
+                                   "state": {k: v.detach().clone() for k, v in model.state_dict().items()}}
         t.extra["history"].append(rec)
         write_json(ctx.run_dir / "history.json", {"history": t.extra["history"],
                                                   "train_seconds": rec["elapsed_s"]})
@@ -164,10 +172,17 @@ def train_neural(cfg: Config, ctx: RunContext, t: Trainables, train: PosedViews,
         writer.add_images("images/gt", _nchw(sub.images), done)
         writer.add_images("images/error", _nchw((rgb - sub.images).abs().mean(-1, keepdim=True)), done)
 
+    if cfg.neural.select == "best_val" and val_sub is None:
+        raise ConfigError("neural.select: best_val needs validation views (a val split; eval.val_views >= 1)")
     engine = Engine(ctx.run_dir, cfg.log, cfg.neural.steps, desc="neural")
     engine.train(t, lambda k: train_step(cfg.neural, t, train, k), start=start,
                  validate=validate, images=images,
                  view=lambda: neural_view(model, cams, cfg.eval_seed()))
+    best = t.extra.get("best_val")
+    if cfg.neural.select == "best_val" and best is not None:
+        model.load_state_dict(best["state"])
+        log.info("stage 2: the model is step %d's (val %.2f dB, the best of %d validations; neural.select: best_val)",
+                 best["step"], best["psnr"], len(t.extra["history"]))
     return t
 
 

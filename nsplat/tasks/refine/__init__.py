@@ -3,25 +3,25 @@
 Given reference frames, initial (perturbed) cameras and an initial surfel cloud, minimise the masked
 L1 image loss over per-camera SE(3) corrections (:mod:`nsplat.tasks.refine.poses`, optional focal), the scene's
 learnable attributes (:class:`nsplat.scene.SurfelScene`: positions, normals, scales, opacity, albedo;
-each switchable by ``scene.learn``) and the shading (2nd-order SH, :mod:`nsplat.sh`; or plain albedo;
-or Lambert with the paper's fixed lights, :mod:`nsplat.shading`). Poses and scene are optimised
+each switchable by ``scene.learn``) and the shading (2nd-order SH, :mod:`nsplat.render.sh`; or plain albedo;
+or Lambert with the paper's fixed lights, :mod:`nsplat.render.shading`). Poses and scene are optimised
 jointly or alternately (``optim.schedule``); the outlier filter (:mod:`nsplat.tasks.refine.filtering`) removes
 points whose accumulated photometric error is improbable.
 
-Data sources: ``room`` (the synthetic benchmark of :mod:`nsplat.data.room`, with ground-truth poses),
+Data sources: ``room`` (the synthetic benchmark of :mod:`nsplat.tasks.refine.room`, with ground-truth poses),
 ``nerf`` (NeRF-synthetic frames with ground-truth poses perturbed here, plus an initial cloud read
 from a PLY written by :meth:`SurfelScene.save_ply`) and ``rgbd`` (a real RGB-D sequence with its SLAM or odometry
 trajectory, :mod:`nsplat.data.rgbd`: the depth fused into the initial cloud or the SLAM system's PLY, a per-frame
 exposure, an optional depth term and odometry prior, held-out frames scored after fitting their cameras to the
 frozen scene, ATE / RPE against a ground truth; :mod:`~nsplat.tasks.refine.sequence`).
 
-Every render goes through the gateway :func:`nsplat.render.render` (``render.renderer``: the sampled op,
+Every render goes through the gateway :func:`nsplat.render.renderer.render` (``render.renderer``: the sampled op,
 the dense oracle or the truncated baseline).
 
 Modules: :mod:`~nsplat.tasks.refine.config` (settings), :mod:`~nsplat.tasks.refine.data` (frames and initial scene),
 :mod:`~nsplat.tasks.refine.model` (the refiner), :mod:`~nsplat.tasks.refine.optimisers` (loss, optimisers, schedule),
 :mod:`~nsplat.tasks.refine.metrics`, :mod:`~nsplat.tasks.refine.commands` (the task contract; steps run on the
-engine, :mod:`nsplat.engine`), :mod:`~nsplat.tasks.refine.poses`, :mod:`~nsplat.tasks.refine.exposure`,
+engine, :mod:`nsplat.run.engine`), :mod:`~nsplat.tasks.refine.poses`, :mod:`~nsplat.tasks.refine.exposure`,
 :mod:`~nsplat.tasks.refine.filtering`, :mod:`~nsplat.tasks.refine.sequence` (scoring an RGB-D sequence) and
 :mod:`~nsplat.tasks.refine.trajectory` (ATE / RPE).
 

@@ -13,11 +13,12 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from nsplat.checkpoint import load_checkpoint
 from nsplat.data.views import PosedViews
-from nsplat.engine import Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed, write_json
-from nsplat.report import results
-from nsplat.runctx import RunContext
+from nsplat.render.view_model import ViewModel
+from nsplat.run.checkpoint import load_checkpoint
+from nsplat.run.context import RunContext
+from nsplat.run.engine import Engine, Trainables, checkpoint_rows, generator, latest_payload, op_seed, write_json
+from nsplat.run.report import results
 from nsplat.scene import SurfelScene
 from nsplat.tasks.refine.config import Config
 from nsplat.tasks.refine.data import RefineData, load_data
@@ -38,7 +39,6 @@ from nsplat.tasks.refine.sequence import (
     write_tum,
 )
 from nsplat.tasks.refine.trajectory import ate
-from nsplat.view_model import ViewModel
 
 log = logging.getLogger("nsplat.tasks.refine")
 

@@ -7,11 +7,11 @@ from typing import Literal
 
 from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.fusion import FusionConfig
-from nsplat.data.room import RoomSpec
-from nsplat.engine import LogConfig
-from nsplat.render import RenderConfig
+from nsplat.render.renderer import RenderConfig
+from nsplat.run.engine import LogConfig
 from nsplat.scene import SceneConfig
 from nsplat.tasks.refine.filtering import FilterConfig
+from nsplat.tasks.refine.room import RoomSpec
 
 
 @dataclasses.dataclass
@@ -133,7 +133,7 @@ class ShadingConfig:
 
     Attributes:
         model: ``albedo`` (none), ``sh`` (2nd-order SH irradiance) or ``lambert`` (the paper's camera-fixed
-            lights, :mod:`nsplat.shading`).
+            lights, :mod:`nsplat.render.shading`).
         learn_sh: make the 9×C SH coefficients learnable. ambient: their initial uniform radiance (>= 0).
     """
 
@@ -281,7 +281,7 @@ class Config:
         data: :class:`DataConfig`, frames, cameras and the initial cloud. scene: which point attributes exist
             and are learned (:class:`nsplat.scene.SceneConfig`). shading: :class:`ShadingConfig`.
         poses: :class:`PoseConfig`. exposure: :class:`ExposureConfig`. heldout: :class:`HeldoutConfig`.
-        render: the render settings (:class:`nsplat.render.RenderConfig`).
+        render: the render settings (:class:`nsplat.render.renderer.RenderConfig`).
         optim: :class:`OptimConfig`. mask_loss: restrict the loss to the frames' valid pixels.
         depth_loss: weight of the relative depth error of RGB-D frames (:func:`nsplat.tasks.refine.optimisers.depth_l1`:
             the rendered depth against the sensor's, on the loss pixels with a reading) added to the L1 image loss
@@ -291,7 +291,7 @@ class Config:
             saw) cannot be explained by any pose; against the background colour they pull every camera towards
             showing more of the cloud, a bias of the pose estimate.
         filter: the outlier filter (:class:`nsplat.tasks.refine.filtering.FilterConfig`).
-        log: the cadences (:class:`nsplat.engine.LogConfig`).
+        log: the cadences (:class:`nsplat.run.engine.LogConfig`).
     """
 
     task: str = "refine"

@@ -20,11 +20,11 @@ from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
 from nsplat.data.pointclouds import read_point_ply, read_vertex_element
 from nsplat.data.rgbd import RGBDSequence, camera_of, folder_files, load_frames, tum_files
-from nsplat.data.room import load_room
 from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 from nsplat.scene import SurfelScene
 from nsplat.tasks.refine.config import Config, RGBDSource
+from nsplat.tasks.refine.room import load_room
 
 #: The default RGB-D sequence under the data root (``nsplat data fetch tum_fr1_rpy`` has the whole sequence).
 DEFAULT_RGBD = "rgbd/tum_fr1_rpy_50"

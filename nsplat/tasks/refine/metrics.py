@@ -1,7 +1,7 @@
 """The refine task's metrics: pose errors and masked PSNR / SSIM of the rendered frames.
 
 The SSIM is scikit-image's map (Gaussian window σ = 1.5, reflected borders) averaged over the frame's mask, not
-:func:`nsplat.metrics_image.ssim` (the valid region's mean, no mask): the two differ by about 1e-3 on a 64×48
+:func:`nsplat.evaluation.image_metrics.ssim` (the valid region's mean, no mask): the two differ by about 1e-3 on a 64×48
 frame, and the refinement figures (docs/results.md) were measured with this one.
 """
 from __future__ import annotations

@@ -1,25 +1,25 @@
 """The refine task's model: :class:`Refiner` (scene, shading and camera corrections) renders the frames' cameras
-through the gateway (:func:`nsplat.render.render`); :func:`refiner_view` is its live view."""
+through the gateway (:func:`nsplat.render.renderer.render`); :func:`refiner_view` is its live view."""
 from __future__ import annotations
 
 import torch
 
-from nsplat import render as gateway
 from nsplat.data.views import PosedViews
-from nsplat.render import RenderConfig, background_of
+from nsplat.render import renderer as gateway
+from nsplat.render.renderer import RenderConfig, background_of
+from nsplat.render.sh import SHLighting
+from nsplat.render.shading import lambert
+from nsplat.render.view_model import TrainingCameras, ViewModel
 from nsplat.scene import SurfelScene
-from nsplat.sh import SHLighting
-from nsplat.shading import lambert
 from nsplat.tasks.refine.config import Config
 from nsplat.tasks.refine.exposure import Exposure
 from nsplat.tasks.refine.poses import CameraCorrection
-from nsplat.view_model import TrainingCameras, ViewModel
 
 
 def render_cameras(rcfg: RenderConfig, scene: SurfelScene, features: torch.Tensor, viewmats: torch.Tensor,
                    Ks: torch.Tensor, width: int, height: int, seed: int,
                    background: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Render cameras ``[B]`` through the gateway (:func:`nsplat.render.render`).
+    """Render cameras ``[B]`` through the gateway (:func:`nsplat.render.renderer.render`).
 
     Args:
         scene: the surfels (geometry). features: ``[N,C]`` (same for every camera) or ``[B,N,C]`` (per

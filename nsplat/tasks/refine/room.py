@@ -9,7 +9,7 @@ the paper's data.
 Reference frames are rendered by an independent path, the analytic ray tracer of
 :mod:`nsplat.data.raytrace` (ray–primitive intersection, procedural albedo, ``s×s`` supersampling),
 shaded here with the same 2nd-order SH irradiance model the refinement learns
-(:func:`nsplat.sh.sh_shade`, ground-truth coefficients :data:`GT_SH`; no shadows, which that model
+(:func:`nsplat.render.sh.sh_shade`, ground-truth coefficients :data:`GT_SH`; no shadows, which that model
 cannot represent). The cameras follow an arc around the table.
 
 The initial state simulates an RGB-D SLAM result: a lower-density point cloud back-projected from
@@ -36,7 +36,7 @@ from nsplat.cameras import intrinsics_from_fov, look_at, perturb_viewmats
 from nsplat.config import require, require_fields
 from nsplat.data.raytrace import Box, Material, Plane, Primitive, albedo, camera_rays, intersect
 from nsplat.data.views import PosedViews
-from nsplat.sh import sh_shade
+from nsplat.render.sh import sh_shade
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ ROOM = (4.0, 3.5, 2.6)
 SCENE_SIZE = max(ROOM)
 #: Index of the window primitive in :func:`room_primitives` (its pixels are invalid).
 WINDOW = 0
-#: Ground-truth SH radiance coefficients ``[9, 3]`` (basis order of :mod:`nsplat.sh`): a warm
+#: Ground-truth SH radiance coefficients ``[9, 3]`` (basis order of :mod:`nsplat.render.sh`): a warm
 #: overhead light, a cool fill from the window side, and some second-order structure.
 GT_SH = torch.tensor([
     [2.90, 2.80, 2.60],

@@ -25,10 +25,11 @@ import torch
 from kornia.geometry.liegroup import Se3
 from tqdm import tqdm
 
-from nsplat.comparison_sheet import write_sheet
 from nsplat.data.tum_format import write_trajectory
 from nsplat.data.views import PosedViews
-from nsplat.metrics_image import lpips, lpips_status
+from nsplat.evaluation.comparison_sheet import write_sheet
+from nsplat.evaluation.image_metrics import lpips, lpips_status
+from nsplat.render.video import to_uint8, write_video
 from nsplat.tasks.refine.config import Config
 from nsplat.tasks.refine.data import Sequence
 from nsplat.tasks.refine.metrics import image_metrics
@@ -36,7 +37,6 @@ from nsplat.tasks.refine.model import Refiner
 from nsplat.tasks.refine.optimisers import depth_l1, masked_l1
 from nsplat.tasks.refine.poses import motion_prior
 from nsplat.tasks.refine.trajectory import ate, rpe
-from nsplat.video import to_uint8, write_video
 
 log = logging.getLogger("nsplat.tasks.refine")
 
