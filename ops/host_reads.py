@@ -3,9 +3,9 @@
 On a GPU, every read of tensor values by the host (``.item()``, ``bool(t)``, ``.cpu()``) waits for the stream, and
 every tensor built from Python data on a device (``torch.tensor(..., device=...)``) is a copy from the host. The op
 reads on purpose in two places of its Python code, both through :func:`host_read`: the value checks of a call
-(``ops/value_checks.py``: the inputs' checks together, then the projection's hazards together), and in two
-places of the CUDA sampler (the trees' valid counts; the tile item offsets and coefficient totals), counted by the
-native module (``host_reads()``, the CUDA module and its host emulation).
+(``ops/value_checks.py``: the inputs' checks together, then the projection's hazards together), and once per call
+in the CUDA sampler (the tile item offsets and the coefficient total; the trees' valid counts stay on the device),
+counted by the native module (``host_reads()``, the CUDA module and its host emulation).
 
 :func:`count_host_traffic` counts both kinds in a block and, through a dispatch mode, every other read or copy the
 block's PyTorch code makes outside the custom ops: so a test on the CPU (the host emulation of the CUDA launch code)

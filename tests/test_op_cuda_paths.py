@@ -87,16 +87,17 @@ def test_emulated_lanes_at_400_draw_the_cpu_law_and_composite_its_bits(emulated,
 
 def test_emulated_many_cameras_split_groups_and_sorts_sample_as_one_call_per_view(emulated, monkeypatch):  # noqa: F811
     """20 cameras in one call with groups cut by the scratch limit (2 cameras a group) and key sorts of 3 cameras:
-    every camera bitwise as that camera alone."""
+    every camera bitwise as that camera alone; the call reads sizes back to the host once, whatever its groups."""
     W, H = 12, 8
     proj, K, seeds = _many_cameras(20, W, H)
     _emulate(monkeypatch, emulated)
     monkeypatch.setenv("NSPLAT_CUDA_PIXEL_LANES", "2")
     monkeypatch.setenv("NSPLAT_CUDA_SORT_CAMERAS", "3")
     monkeypatch.setenv("NSPLAT_CUDA_LANE_SCRATCH_BYTES", str(GROUP_OF_TWO))
-    before = emulated.launches()
+    before, reads = emulated.launches(), emulated.host_reads()
     got = sample(proj, K, W, H, samples=4, eps=0.01, seed=seeds)
     split = emulated.launches() - before
+    assert emulated.host_reads() - reads == 1
     monkeypatch.setenv("NSPLAT_CUDA_LANE_SCRATCH_BYTES", str(2**30))
     before = emulated.launches()
     whole = sample(proj, K, W, H, samples=4, eps=0.01, seed=seeds)

@@ -6,7 +6,7 @@
 //                                   kCameraGroup = 16 cameras, so all of most calls' cameras: one launch
 //                                   per phase for the group, the cameras' trees and streams in a kernel
 //                                   argument, CameraGroup): tile item lists (one thread per (camera, tile,
-//                                   slot), then one sort into the pixel pass's layout; two reads of sizes back
+//                                   slot), then one sort into the pixel pass's layout; one read of sizes back
 //                                   to the host per call, whatever the cameras), then one or more threads per
 //                                   pixel (lanes, tile.h) over the group's (camera, tile) in chunks, a tile's
 //                                   pixels on consecutive threads, each with its heap interleaved with its
@@ -23,8 +23,9 @@
 // Memory: the per-pixel heaps live in global memory (per camera of a group, L heaps of (double, int) entries of
 // pixels x samples for L lanes per pixel; with several lanes their LaneStats and one merged heap), so `samples` is
 // limited by memory only; a group holds as many cameras as keep this scratch within kLaneScratchBytes (one at
-// least). All slot offsets are 64-bit. The cameras' trees of a call are alive together (a few hundred bytes per
-// point and camera); the tile items of a camera group take sizeof(TileItem) (120 B) each, twice while they are
+// least). All slot offsets are 64-bit. The cameras' trees of a call are alive together, each sized for all N points
+// of the call (its valid count stays on the device): 216 bytes per point and camera with the bound metrics and keys;
+// the tile items of a camera group take sizeof(TileItem) (120 B) each, twice while they are
 // arranged; the near items' per-pixel bins one byte per (item, tile pixel), at most kBinScratchBytes per sampling
 // launch (a launch's tiles may span the group's cameras).
 //
@@ -169,8 +170,9 @@ __global__ void unpack_keys_kernel(const uint64_t* __restrict__ packed, int64_t 
   }
 }
 
-// Kernels of phases 2 and 3 run one thread per (camera b, element) over blocks of `stride` elements; camera b's
-// valid count n = count[b] (on the device) says which of its block are live.
+// Kernels of phases 2 and 3 run one thread per (camera b, element) over blocks of `stride` elements (stride = N, the
+// bound of every camera's valid count); camera b's valid count n = count[b] (on the device, never read by the host)
+// says which of its block are live.
 
 // Camera b's sorted points' double copies (the CPU builder's second loop), leaf s at b stride + s.
 template <typename S>
@@ -261,14 +263,15 @@ inline int bit_length(int64_t v) {
   return bits;
 }
 
-// The trees of a call's B cameras, built together in three phases, so that a call reads sizes back to the host twice
-// in all (sample_cuda) and each step of the CPU builder is one kernel (or cub primitive) for every camera, not one
-// per camera. Camera b's tree is block b of each array: its sorted keys at b N, its leaves at b stride, its internal
-// nodes at b (stride - 1), stride being the call's largest valid count. The coefficient offsets herm_off are one
-// exclusive scan over all the cameras' nodes, so they index the call's one coefficient array herm_coef.
+// The trees of a call's B cameras, built together in three phases, so that a call reads sizes back to the host once
+// in all (sample_cuda: the coefficient total with the tile item offsets) and each step of the CPU builder is one
+// kernel (or cub primitive) for every camera, not one per camera. The valid counts stay on the device (T.count): every
+// camera's block is sized for the bound N, its sorted keys at b N, its leaves at b stride, its internal nodes at
+// b (stride - 1), stride = max(N, 1); the kernels skip the elements past camera b's count. Dead nodes take no
+// coefficients (p^2 = 0), so the coefficient offsets herm_off, one exclusive scan over all the cameras' nodes, are
+// those of the compact layout and index the call's one coefficient array herm_coef.
 struct CudaTrees {
   int64_t B = 0, N = 0, stride = 1;
-  std::vector<int64_t> n;  // each camera's valid count, on the host (phase 2 on)
   at::Tensor keys, count, nodes, agg, herm_p, herm_off, herm_err, herm_coef, mu, con, logA, amp, sig2, id;
 
   int64_t inner() const { return stride - 1; }
@@ -278,25 +281,22 @@ struct CudaTrees {
     return t.defined() && t.numel() ? reinterpret_cast<T*>(t.data_ptr()) + at : nullptr;
   }
 
-  // Camera b's tree (no bound metrics).
+  // Camera b's tree (no bound metrics) but for its valid count, which is on the device: n is left at -1, and the
+  // kernels take it from CameraGroup::tree. The arrays are those of N points (null when the call has none).
   TreeView view(int64_t b) const {
     TreeView t{};
-    t.n = n[b];
-    if (t.n > 0) {
-      t.mu = ptr<const double>(mu, 2 * b * stride);
-      t.con = ptr<const double>(con, 3 * b * stride);
-      t.logA = ptr<const double>(logA, b * stride);
-      t.sig2 = ptr<const double>(sig2, b * stride);
-      t.id = ptr<const int>(id, b * stride);
-    }
-    if (t.n > 1) {
-      t.nodes = ptr<const InternalNode>(nodes, b * inner());
-      t.agg = ptr<const NodeAgg>(agg, b * inner());
-      t.herm_p = ptr<const int>(herm_p, b * inner());
-      t.herm_off = ptr<const int64_t>(herm_off, b * inner());
-      t.herm_err = ptr<const double>(herm_err, b * inner());
-      t.herm_coef = ptr<const double>(herm_coef, 0);
-    }
+    t.n = -1;
+    t.mu = ptr<const double>(mu, 2 * b * stride);
+    t.con = ptr<const double>(con, 3 * b * stride);
+    t.logA = ptr<const double>(logA, b * stride);
+    t.sig2 = ptr<const double>(sig2, b * stride);
+    t.id = ptr<const int>(id, b * stride);
+    t.nodes = ptr<const InternalNode>(nodes, b * inner());
+    t.agg = ptr<const NodeAgg>(agg, b * inner());
+    t.herm_p = ptr<const int>(herm_p, b * inner());
+    t.herm_off = ptr<const int64_t>(herm_off, b * inner());
+    t.herm_err = ptr<const double>(herm_err, b * inner());
+    t.herm_coef = ptr<const double>(herm_coef, 0);
     t.metric = nullptr;
     return t;
   }
@@ -347,13 +347,13 @@ void tree_keys(CudaTrees& T, const S* mu, const S* amp, const S* sig2, int64_t B
   }
 }
 
-// Phase 2, with the valid counts known on the host: sorted double copies, internal nodes, bottom-up aggregates,
-// expansion orders and the coefficient offsets (their total stays on the device, at T.herm_off[B (stride - 1)]).
+// Phase 2, with the valid counts on the device (blocks of the bound N points a camera): sorted double copies,
+// internal nodes, bottom-up aggregates, expansion orders and the coefficient offsets (their total stays on the
+// device, at T.herm_off[B (stride - 1)]).
 template <typename S>
-void tree_nodes(CudaTrees& T, std::vector<int64_t> n, const S* mu, const S* con, const S* amp, const S* sig2,
-                int order, double tol, const at::TensorOptions& dev, Stream stream) {
-  T.n = std::move(n);
-  T.stride = std::max<int64_t>(1, *std::max_element(T.n.begin(), T.n.end()));
+void tree_nodes(CudaTrees& T, const S* mu, const S* con, const S* amp, const S* sig2, int order, double tol,
+                const at::TensorOptions& dev, Stream stream) {
+  T.stride = std::max<int64_t>(1, T.N);
   if (T.N == 0) return;
   const int64_t B = T.B, L = B * T.stride, I = B * T.inner();
   const auto dbl = dev.dtype(at::kDouble);
@@ -435,21 +435,31 @@ SplatsBase<S> splats_base(const at::Tensor& mu, const at::Tensor& con, const at:
 
 // The cameras of one launch of the tile and pixel passes (at most kCameraGroup of them, cameras first ..
 // first + count - 1 of the call): their trees and (seed, camera) streams, passed by value as a kernel argument,
-// so that no per-camera table is copied to the device. Camera c of the group is camera first + c of the call.
+// so that no per-camera table is copied to the device. Camera c of the group is camera first + c of the call. The
+// trees' valid counts are on the device (n_valid[first + c], CudaTrees::count; tv[c].n is unset): tree(c) is camera
+// c's tree with its count.
 constexpr int kCameraGroup = 16;
 struct CameraGroup {
   int64_t first, count;
+  const int64_t* n_valid;  // [B] the call's valid counts, on the device
   TreeView tv[kCameraGroup];
   uint64_t seed[kCameraGroup];
   int64_t camera[kCameraGroup];
+
+  __device__ __forceinline__ TreeView tree(int64_t c) const {
+    TreeView t = tv[c];
+    t.n = n_valid[first + c];
+    return t;
+  }
 };
 
 // Bound metrics of the group nodes (tile.h), one thread per (camera, internal node): camera c's metrics at
-// metric[c stride + i] (stride >= its internal nodes).
+// metric[c stride + i] (stride >= its internal nodes; the grid covers the bound, threads past the camera's nodes
+// exit).
 __global__ void group_metric_kernel(CameraGroup cg, int64_t stride, ItemMetric* __restrict__ metric) {
   NS_GRID_STRIDE(g, cg.count * stride) {
     const int64_t c = g / stride, i = g % stride;
-    const TreeView tv = cg.tv[c];
+    const TreeView tv = cg.tree(c);
     if (i >= tv.n - 1) continue;
     const InternalNode& nd = tv.nodes[i];
     if (nd.last - nd.first + 1 <= kGroupSize) metric[c * stride + i] = group_metric(tv, nd.first, nd.last);
@@ -489,7 +499,7 @@ __global__ void slot_items_kernel(CameraGroup cg, TileGrid grid, int64_t* __rest
     const int64_t T = g / kTileSlots, c = T / grid.tiles, t = T % grid.tiles;
     const int slot = static_cast<int>(g % kTileSlots);
     const TileRect r = tile_rect(grid, t);
-    const TreeView tv = cg.tv[c];
+    const TreeView tv = cg.tree(c);
     if (!raw) {
       counts[g] = tile_slot_items(tv, slot, r.x0, r.y0, r.x1, r.y1, grid.log_theta, grid.log_far, nullptr);
       continue;
@@ -626,7 +636,7 @@ __device__ __forceinline__ LaneStats search_lane(const PixelPass<S>& pp, const L
   const Draw draw = pixel_draw(pp.cg.seed[th.ct.c], pp.cg.camera[th.ct.c], th.q.p, pp.width, pp.stratified);
   const int n = static_cast<int>(pp.offsets[th.T + 1] - pp.offsets[th.T]);
   uint8_t* bins = pp.bin8 + (pp.offsets[th.T] - pp.offsets[T0]) * kTilePixels + th.l;
-  return sample_lane(pp.cg.tv[th.ct.c], pp.items + pp.offsets[th.T], n, pp.near_counts[th.T], u, v, draw, pp.m,
+  return sample_lane(pp.cg.tree(th.ct.c), pp.items + pp.offsets[th.T], n, pp.near_counts[th.T], u, v, draw, pp.m,
                      pp.log_eps, floor, th.lane, pp.lanes, pp.key + th.h, pp.heap_idx + th.h, pp.heaps, bins,
                      kTilePixels);
 }
@@ -961,15 +971,14 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
   AT_DISPATCH_FLOATING_TYPES(mu.scalar_type(), "nsplat_sample_cuda", [&] {
     using S = scalar_t;
     const SplatsBase<S> base = splats_base<S>(mu, con, amp, nrm, off, zc);
-    // Every camera's tree and tile lists, with two reads of sizes back to the host for the whole call: the valid
-    // counts, then `sizes`: per group g (cameras g group ..), the item offsets of its camera tiles (group tiles + 1
-    // entries from g (group tiles + 1)), then the trees' coefficient total (entry B tiles + groups).
+    // Every camera's tree and tile lists, with one read of sizes back to the host for the whole call, `sizes`: per
+    // group g (cameras g group ..), the item offsets of its camera tiles (group tiles + 1 entries from
+    // g (group tiles + 1)), then the trees' coefficient total (entry B tiles + groups). The trees' valid counts stay
+    // on the device: the trees and the bound metrics are sized for N points a camera.
     CudaTrees trees;
     tree_keys<S>(trees, mu.data_ptr<S>(), amp.data_ptr<S>(), sig2.data_ptr<S>(), B, N, opts, stream);
-    const at::Tensor counts_host = to_host(trees.count);  // synchronises (1 of 2)
-    const int64_t* n_host = counts_host.data_ptr<int64_t>();
-    tree_nodes<S>(trees, std::vector<int64_t>(n_host, n_host + B), mu.data_ptr<S>(), con.data_ptr<S>(),
-                  amp.data_ptr<S>(), sig2.data_ptr<S>(), static_cast<int>(order), tol, opts, stream);
+    tree_nodes<S>(trees, mu.data_ptr<S>(), con.data_ptr<S>(), amp.data_ptr<S>(), sig2.data_ptr<S>(),
+                  static_cast<int>(order), tol, opts, stream);
     at::Tensor sizes = at::zeros({B * tiles + groups + 1}, i64);
     int64_t* const sizes_d = sizes.data_ptr<int64_t>();
     if (trees.herm_off.defined()) sizes.narrow(0, B * tiles + groups, 1).copy_(trees.herm_off.narrow(0, trees.herm_off.size(0) - 1, 1));
@@ -980,8 +989,8 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
       CameraGroup& cg = cgs[g];
       cg.first = g * group;
       cg.count = std::min(group, B - cg.first);
-      int64_t stride = 1;  // internal nodes of the group's largest tree
-      for (int64_t c = 0; c < cg.count; ++c) stride = std::max(stride, n_host[cg.first + c] - 1);
+      cg.n_valid = trees.count.data_ptr<int64_t>();
+      const int64_t stride = std::max<int64_t>(1, trees.inner());  // internal nodes of a tree of N points
       metrics[g] = bytes(cg.count * stride * static_cast<int64_t>(sizeof(ItemMetric)), opts);
       for (int64_t c = 0; c < cg.count; ++c) {
         const int64_t b = cg.first + c;
@@ -1006,7 +1015,7 @@ std::vector<at::Tensor> sample_cuda(const at::Tensor& mu, const at::Tensor& con,
                 slot_offsets[g].data_ptr<int64_t>(), cg.count * tiles, sizes_d + cg.first * tiles + g);
       NS_LAUNCH_CHECK();
     }
-    const at::Tensor sizes_host = to_host(sizes);  // synchronises (2 of 2)
+    const at::Tensor sizes_host = to_host(sizes);  // synchronises (the call's one read)
     tree_coefficients(trees, sizes_host.data_ptr<int64_t>()[B * tiles + groups], opts, stream);
     for (int64_t g = 0; g < groups; ++g) {
       CameraGroup& cg = cgs[g];
