@@ -8,16 +8,19 @@ The neural task takes the box from the data unless ``geometry.bbox`` overrides i
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
 import torch
 
 from nsplat.cameras import intrinsics_from_fov, sphere_views
-from nsplat.config import ConfigError
+from nsplat.config import ConfigError, load_config
 from nsplat.data.views import PosedViews
 from nsplat.data.visual_hull import silhouette_box
-from nsplat.tasks.neural.config import FRAME_BOX, GeometryConfig
+from nsplat.tasks.neural.config import FRAME_BOX, Config, GeometryConfig
+from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.starts import initial_geometry
 
 LEGO_BOX = (-0.8, -1.3, -0.75, 0.8, 1.3, 1.15)
 SIZE = 48
@@ -93,3 +96,27 @@ def test_geometry_bbox_is_from_the_data_unless_set():
     assert FRAME_BOX == (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     with pytest.raises(ConfigError, match="bbox"):
         GeometryConfig(bbox=(0.0, 0.0, 0.0, -1.0, 1.0, 1.0))
+
+
+def _procedural(tmp_path, **geometry) -> Config:
+    return load_config(Config, {"task": "neural", "data": {"procedural": {
+        "seed": 1, "resolution": 24, "views": [6, 2, 2], "objects": 2, "cache_dir": str(tmp_path)}},
+        "geometry": {"grid": 24, **geometry}})
+
+
+def test_the_hull_start_is_carved_in_the_box_from_the_data(tmp_path, caplog):
+    cfg = _procedural(tmp_path)
+    train = load_views(cfg, "train", torch.device("cpu"))
+    with caplog.at_level(logging.INFO, logger="nsplat"):
+        scene = initial_geometry(cfg, train, seed=0)
+    assert "the scene's box from the training silhouettes" in caplog.text
+    box = torch.tensor(silhouette_box(train), dtype=torch.float32)
+    means = scene.means.detach()
+    assert ((means >= box[:3]) & (means <= box[3:])).all()
+
+
+def test_a_box_that_misses_the_scene_is_a_one_line_config_error(tmp_path):
+    cfg = _procedural(tmp_path, bbox=[5.0, 5.0, 5.0, 6.0, 6.0, 6.0])
+    train = load_views(cfg, "train", torch.device("cpu"))
+    with pytest.raises(ConfigError, match=r"geometry\.bbox: .*visual hull is empty.*null takes the scene's box"):
+        initial_geometry(cfg, train, seed=0)

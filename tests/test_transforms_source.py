@@ -2,7 +2,9 @@
 ``configs/transforms.yaml``) on a fixture written here: the procedural scene's photos composited on white as
 ``images/*.png`` with a PINHOLE ``transforms.json``. ``geometry.init: auto`` starts from the point cloud the
 file names in ``ply_file_path`` (moved with the cameras into the training frame), else from the hull of the
-masks, else from random points in the cameras' common view; the config trains a few steps and evaluates."""
+masks, else from points triangulated from the photos (tests/test_triangulate.py) or, where these 24-pixel photos of
+untextured objects give too few, from random points in the cameras' common view; the config trains a few steps
+and evaluates."""
 from __future__ import annotations
 
 import json
@@ -25,6 +27,7 @@ from nsplat.errors import DataError
 from nsplat.tasks.neural.capture import prepare
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.data import load_views
+from nsplat.tasks.neural.diagnosis import stall_message
 from nsplat.tasks.neural.starts import initial_geometry, start_kind
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,11 +91,14 @@ def test_transforms_config_trains_and_evaluates_from_the_common_view(scene, tmp_
     absent = [{**frames[i], "file_path": f"images/gone_{i}.png"} for i in range(3)]
     raw = _config(_listing(scene, tmp_path / "scene", frames[:4] + absent + frames[4:]))
     cfg = load_config(Config, raw)
-    assert cfg.data.source == "transforms" and start_kind(cfg) == "view_fill"
     with caplog.at_level(logging.WARNING):
         prep = prepare(cfg)
+    assert cfg.data.source == "transforms" and start_kind(cfg) == "view_fill"
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warnings) == 1 and "3 of the 13 frames" in warnings[0] and "images/gone_0.png" in warnings[0]
+    assert len(warnings) == 2 and "3 of the 13 frames" in warnings[0] and "images/gone_0.png" in warnings[0]
+    # 24-pixel photos of untextured objects on white: too few points to triangulate, said in one line
+    assert "triangulation from the 7 training photos found" in warnings[1] and "common view" in warnings[1]
+    assert prep.points is None and prep.note in warnings[1]
     assert [len(prep.splits[k]) for k in ("train", "val", "test")] == [7, 1, 2]  # every 8th by name held out
     assert prep.splits["test"].names == ["images/test_r_0.png", "images/val_r_0.png"]  # sorted: 0 and 8
     train = load_views(cfg, "train", torch.device("cpu"))
@@ -100,6 +106,9 @@ def test_transforms_config_trains_and_evaluates_from_the_common_view(scene, tmp_
     bg = cfg.geometry.background.points
     assert start.num_points > cfg.geometry.max_points  # the common-view points, then the background sphere
     fill = start.opacities.detach()[:cfg.geometry.max_points]
+    stall = stall_message(cfg, start, train, 3.0, 10.0, 9.8, 10.5)  # what a stalled stage 1 would say
+    assert "\n" not in stall and prep.note in stall
+    assert f"the start was {cfg.geometry.max_points} random points in the training cameras' common view" in stall
     assert torch.allclose(fill, torch.full_like(fill, cfg.geometry.sfm.fill_opacity), atol=1e-5)
     assert start.num_points <= cfg.geometry.max_points + bg
     cfg_path = tmp_path / "transforms.yaml"

@@ -36,6 +36,7 @@ SMOKE: dict[str, list[str]] = {
     "benchmarks.gt_views": ["--smoke"],
     "benchmarks.refine_memory": ["--smoke"],
     "benchmarks.refine_tum": ["--smoke"],
+    "benchmarks.scenes": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
 NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds",

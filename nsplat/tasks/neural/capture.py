@@ -15,28 +15,37 @@ folder (:func:`nsplat.data.transforms_json.load_transforms`) at ``data.root`` is
   SfM points move with it). The frame is the same whatever similarity SfM's world is off by;
 * **near/far** (``near_far``): the render's clipping planes from the SfM points' depths
   (:func:`nsplat.tasks.neural.background.depth_range`: half the smallest depth, twice the farthest reach;
-  depths under :data:`STRAY_DEPTH` camera distances are stray points, passed over).
+  depths under :data:`STRAY_DEPTH` camera distances are stray points, passed over);
+* **points of a ``transforms.json`` folder** (:func:`capture_points`): the file has none, so with
+  ``geometry.init: auto`` (and neither ``ply_file_path`` nor ``data.capture.masks``) they come from a COLMAP model
+  beside the file, else are triangulated from the training photos with the file's poses
+  (:mod:`nsplat.data.triangulate`, cached); from there they are the capture's SfM points and flow as a COLMAP
+  capture's do (the frame's centre, near/far, the background sphere, the start: :func:`start_kind`).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import torch
 
 from nsplat.cameras import camera_centres
 from nsplat.config import ConfigError, to_dict
-from nsplat.data.capture import SfmPoints
+from nsplat.data.capture import SfmPoints, cache_folder
 from nsplat.data.colmap import load_colmap
 from nsplat.data.paths import resolve
 from nsplat.data.transforms_json import load_transforms, point_cloud_path
+from nsplat.data.triangulate import cached_triangulation, colmap_points_beside
 from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 from nsplat.tasks.neural.background import depth_range, fit_sphere
 from nsplat.tasks.neural.config import Config
 from nsplat.tasks.neural.frame import CaptureFrame, capture_frame
 from nsplat.tasks.neural.sfm_init import reliable
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
@@ -52,6 +61,9 @@ class PreparedCapture:
             capture's world itself.
         ply: the point cloud a ``transforms.json`` names in ``ply_file_path`` (in the capture's world), or
             ``None``.
+        origin: where ``points`` come from: ``model`` (the COLMAP capture's own), ``triangulated`` (from the
+            training photos of a ``transforms.json`` folder), the COLMAP model folder beside such a file, or ``""``
+            (none); with ``note``, why a ``transforms.json`` folder has none (a sentence, or ``""``).
     """
 
     splits: dict[str, PosedViews]
@@ -59,6 +71,8 @@ class PreparedCapture:
     frame: CaptureFrame
     normalized: bool
     ply: Path | None = None
+    origin: str = ""
+    note: str = ""
 
     def to_training(self, xyz: torch.Tensor) -> torch.Tensor:
         """World points ``xyz [N,3]`` of the capture in the training frame (float32)."""
@@ -80,8 +94,9 @@ _CACHE: dict[str, PreparedCapture] = {}
 
 
 def prepare(cfg: Config) -> PreparedCapture:
-    """The configured capture, loaded and prepared once per process (keyed by ``cfg.data``)."""
-    key = json.dumps(to_dict(cfg.data), sort_keys=True)
+    """The configured capture, loaded and prepared once per process (keyed by ``cfg.data`` and whether
+    ``geometry.init`` is ``auto``, which may look for points: :func:`wants_points`)."""
+    key = json.dumps([to_dict(cfg.data), cfg.geometry.init == "auto"], sort_keys=True)
     if key in _CACHE:
         return _CACHE[key]
     c = cfg.data.capture
@@ -101,6 +116,9 @@ def prepare(cfg: Config) -> PreparedCapture:
                           f"among the {n} training images")
     splits = {"train": cap.train.subset([i for i in range(n) if i not in val_idx]),
               "val": cap.train.subset(val_idx), "test": cap.test}
+    origin, note = ("model" if cap.points is not None else ""), ""
+    if ply is None and wants_points(cfg):
+        cap.points, origin, note = capture_points(cfg, root, splits["train"])
     V = len(cap.train) + len(cap.test)   # every camera, without pixels (channels 0)
     every = PosedViews(images=torch.empty(V, cap.train.height, cap.train.width, 0),
                        viewmats=torch.cat([cap.train.viewmats, cap.test.viewmats]),
@@ -109,7 +127,8 @@ def prepare(cfg: Config) -> PreparedCapture:
         frame = capture_frame(every, cap.points, c.radius)
     except ValueError as exc:
         raise DataError(f"{root}: {exc}") from exc
-    prep = PreparedCapture(splits=splits, points=cap.points, frame=frame, normalized=c.normalize, ply=ply)
+    prep = PreparedCapture(splits=splits, points=cap.points, frame=frame, normalized=c.normalize, ply=ply,
+                           origin=origin, note=note)
     if c.normalize:
         prep.splits = {k: dataclasses.replace(v, viewmats=frame.viewmats(v.viewmats)) for k, v in splits.items()}
         if cap.points is not None:
@@ -117,6 +136,81 @@ def prepare(cfg: Config) -> PreparedCapture:
     _CACHE.clear()
     _CACHE[key] = prep
     return prep
+
+
+#: Long side in pixels below which the photos are triangulated at a finer downscale than they train at (the
+#: largest whole ``data.capture.downscale`` that keeps at least this many pixels).
+TRIANGULATION_SIZE = 640
+#: Fewest points a triangulation must find to start from them (else the common-view start, with a warning).
+MIN_TRIANGULATED = 64
+
+
+def wants_points(cfg: Config) -> bool:
+    """Whether :func:`prepare` finds points for a ``transforms.json`` folder whose file names no ``ply_file_path``
+    (:func:`capture_points`): with ``geometry.init: auto`` and no ``data.capture.masks`` (the hull starts)."""
+    return cfg.data.source == "transforms" and cfg.geometry.init == "auto" and not cfg.data.capture.masks
+
+
+def capture_points(cfg: Config, root: Path, train: PosedViews) -> tuple[SfmPoints | None, str, str]:
+    """``(points, origin, note)`` of a ``transforms.json`` folder at ``root`` in the file's world: the SfM points
+    of a COLMAP model beside it (:func:`~nsplat.data.triangulate.colmap_points_beside`; ``origin`` its folder),
+    else those triangulated from the ``train`` photos with their poses held, read at a finer downscale when they
+    train under :data:`TRIANGULATION_SIZE` pixels (:func:`~nsplat.data.triangulate.cached_triangulation`, cached
+    beside the undistorted photos; ``origin`` ``triangulated``); ``(None, "", note)`` with a warning when the
+    triangulation fails or finds fewer than :data:`MIN_TRIANGULATED` points. ``train``: the training views
+    (``images [V,H,W,3]``, world→camera ``viewmats [V,4,4]``, pinhole ``Ks [V,3,3]``) in the file's world."""
+    beside = colmap_points_beside(root, train)
+    if beside is not None:
+        return beside[0], str(beside[1]), ""
+    c = cfg.data.capture
+    cache_dir = resolve(c.cache_dir) if c.cache_dir else None
+    cache = cache_folder(root, cache_dir, c.downscale).parent / "triangulated"
+    finer = max(1, c.downscale * max(train.width, train.height) // TRIANGULATION_SIZE)
+    if finer < c.downscale:  # the same training photos, larger: more features, finer rays
+        loader, level = logging.getLogger("nsplat.data.capture"), logging.getLogger("nsplat.data.capture").level
+        loader.setLevel(logging.ERROR)  # the skipped frames were named once, by the first load
+        try:
+            cap = load_transforms(root, downscale=finer, holdout_every=c.holdout_every, file=c.file,
+                                  cache_dir=cache_dir)
+            index = {name: i for i, name in enumerate(cap.train.names)}
+            train = cap.train.subset([index[name] for name in train.names])
+        except (DataError, KeyError) as exc:  # e.g. a folder that ships only its images_<d> copies
+            log.info("triangulating at the training resolution: the photos at downscale %d: %s", finer, exc)
+        finally:
+            loader.setLevel(level)
+    try:
+        points = cached_triangulation(train, cache, threads=torch.get_num_threads())
+    except (RuntimeError, ValueError, OSError) as exc:
+        note = f"the triangulation from the training photos failed ({' '.join(str(exc).split())})"
+    else:
+        if len(points) >= MIN_TRIANGULATED:
+            return points, "triangulated", ""
+        note = (f"the triangulation from the {len(train)} training photos found {len(points)} points (fewer than "
+                f"{MIN_TRIANGULATED}: too little texture, or poses that do not match the photos)")
+    log.warning("%s: %s; starting from random points in the cameras' common view", root, note)
+    return None, "", note
+
+
+def start_kind(cfg: Config) -> str:
+    """What ``geometry.init`` starts from (:func:`nsplat.tasks.neural.starts.initial_geometry`), ``auto`` resolved
+    (see its doc): ``hull``, ``ply``, ``random``, ``sfm`` (a COLMAP capture's points, or those of the model beside
+    a ``transforms.json``), ``capture_ply`` (the point cloud a ``transforms.json`` names), ``triangulated``
+    (points triangulated from a ``transforms.json`` folder's photos with its poses: :func:`capture_points`) or
+    ``view_fill`` (random points in the training cameras' common view, when the triangulation found too few)."""
+    if cfg.geometry.init != "auto":
+        return cfg.geometry.init
+    if cfg.data.source == "colmap":
+        return "sfm"
+    if cfg.data.source != "transforms":
+        return "hull"
+    prep = prepare(cfg)
+    if prep.ply is not None:
+        return "capture_ply"
+    if cfg.data.capture.masks:
+        return "hull"
+    if prep.points is None:
+        return "view_fill"
+    return "triangulated" if prep.origin == "triangulated" else "sfm"
 
 
 def to_training_frame(cfg: Config, viewmats: torch.Tensor) -> torch.Tensor:

@@ -105,11 +105,13 @@ class GeometryConfig:
             with this stage's attributes, a 3D Gaussian splatting PLY such as ``export --format 3dgs``
             writes, or any point cloud with ``x y z`` and optional normals and colours:
             :func:`nsplat.tasks.neural.starts._ply_scene`) or ``random`` (``max_points`` points uniform
-            in ``bbox``, random normals, grey: a start without silhouettes or SfM points) or ``auto``:
-            ``sfm`` for a COLMAP capture; for a ``transforms`` capture the point cloud its ``ply_file_path``
-            names (moved with the cameras), else the hull when ``data.capture.masks`` is set, else
-            ``max_points`` random points in ``bbox`` that ``sfm.fill_seen`` of the training cameras see (their
-            common view; opacity ``sfm.fill_opacity``, colours from the photos); ``hull`` otherwise.
+            in ``bbox``, random normals, grey: a start without silhouettes or SfM points) or ``view_fill``
+            (``max_points`` random points in ``bbox`` that ``sfm.fill_seen`` of the training cameras see: their
+            common view; opacity ``sfm.fill_opacity``, colours from the photos) or ``auto``: ``sfm`` for a COLMAP
+            capture; for a ``transforms`` capture the point cloud its ``ply_file_path`` names (moved with the
+            cameras), else the hull when ``data.capture.masks`` is set, else a COLMAP model's points beside the
+            file or points triangulated from the photos (:mod:`nsplat.data.triangulate`), else ``view_fill``;
+            ``hull`` otherwise.
         ply: path of that PLY (relative: to the repo root).
         bbox: the scene's box ``(xmin, ymin, zmin, xmax, ymax, zmax)`` (hull, random starts); ``null``: from the data
             (the hull's: :func:`~nsplat.data.visual_hull.silhouette_box`; else :data:`FRAME_BOX`).
@@ -129,7 +131,7 @@ class GeometryConfig:
             the val PSNR is under 1 dB above both the start's and a flat image's (0: no check; docs/capture.md).
     """
 
-    init: Literal["hull", "ply", "random", "sfm", "auto"] = "hull"
+    init: Literal["hull", "ply", "random", "sfm", "view_fill", "auto"] = "hull"
     ply: str | None = None
     bbox: tuple[float, float, float, float, float, float] | None = None
     grid: int = 64

@@ -12,7 +12,7 @@ from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.background import project
-from nsplat.tasks.neural.capture import FAR_POINTS, prepare
+from nsplat.tasks.neural.capture import FAR_POINTS, prepare, start_kind
 from nsplat.tasks.neural.config import Config
 
 #: A view sees the surfels when at least this share of them projects inside its image.
@@ -22,6 +22,9 @@ STALL_DB = 1.0
 #: The stall check waits for at least this many fitter steps as well as ``geometry.stall_epochs`` epochs (a
 #: few dozen steps of a tiny schedule may not move the PSNR yet).
 STALL_MIN_STEPS = 100
+#: A capture's stage 1 whose val PSNR ends this far below its training PSNR (dB) gets a one-line warning
+#: (:func:`gap_message`): it fits the training photos without a scene that predicts the others.
+GAP_DB = 6.0
 
 
 def share_inside(means: torch.Tensor, views: PosedViews, chunk: int = 32) -> torch.Tensor:
@@ -58,9 +61,36 @@ def where_surfels(cfg: Config, means: torch.Tensor, views: PosedViews) -> str:
     return text
 
 
+def start_words(cfg: Config, kind: str) -> str:
+    """What the start ``kind`` (:func:`nsplat.tasks.neural.capture.start_kind`) of a ``transforms.json`` folder was
+    and the likely cure when it cannot learn, in one clause; ``""`` for other captures and scenes."""
+    if cfg.data.source != "transforms":
+        return ""
+    prep = prepare(cfg)
+    if kind == "view_fill":
+        why = f" ({prep.note})" if prep.note else ""
+        return (f"the start was {cfg.geometry.max_points} random points in the training cameras' common view, not the "
+                f"scene's surfaces{why}: give the folder points (a COLMAP model in sparse/0 beside transforms.json, "
+                f"ply_file_path in it, or geometry.init: ply) or, with pycolmap, photos with texture for "
+                f"geometry.init: auto to triangulate")
+    if kind == "triangulated":
+        return (f"the start was the {len(prep.points)} points triangulated from the training photos with the "
+                f"file's poses: if few lie on the scene, the poses or intrinsics of transforms.json do not match "
+                f"the photos (check them, e.g. by running COLMAP into sparse/0 beside it)")
+    if kind == "sfm":
+        return (f"the start was the {len(prep.points)} SfM points of {prep.origin}, moved onto the file's cameras: "
+                f"check that the model belongs to these photos")
+    if kind == "capture_ply":
+        return f"the start was the point cloud {prep.ply}: it must lie in the file's world"
+    return ""
+
+
 def _advice(cfg: Config, kind: str) -> str:
     if kind == "ply":
         return "geometry.ply must hold points in the capture's (or scene's) world"
+    words = start_words(cfg, kind)
+    if words:
+        return words
     if cfg.data.is_capture():
         return ("check the SfM model (data.capture.sparse picks another; a model whose poses do not match the "
                 "photos cannot train), set geometry.bbox to where the object is, geometry.background.radius "
@@ -78,9 +108,19 @@ def check_seen(cfg: Config, means: torch.Tensor, train: PosedViews, kind: str) -
                         f"initial surfels: {where_surfels(cfg, means, train)}; {_advice(cfg, kind)}")
 
 
+def gap_message(cfg: Config, trained: float, val: float, gap: float) -> str:
+    """The one-line note of a capture's stage 1 whose val PSNR ends more than :data:`GAP_DB` below its training
+    PSNR: the figures, what the start was and its likely cure (:func:`start_words`), or the photos' coverage."""
+    words = start_words(cfg, start_kind(cfg))
+    return (f"train {trained:.2f} dB, val {val:.2f} dB ({gap:.1f} dB apart) after stage 1; "
+            + (words if words else "the val photos see parts few training photos see, or the poses are off")
+            + " (docs/capture.md)")
+
+
 def stall_message(cfg: Config, scene: SurfelScene, train: PosedViews, epochs: float, value: float, start: float,
              flat: float) -> str:
-    """The message of a stage 1 that learns nothing (``geometry.stall_epochs``)."""
+    """The one-line message of a stage 1 that learns nothing (``geometry.stall_epochs``): the val PSNR, where the
+    surfels are and what the start was with its likely cure (:func:`start_words`, :func:`_advice`)."""
     means = scene.means.detach().double().cpu()
     if cfg.data.is_capture():  # the scene's surfels, not the background sphere's
         centre, radius = prepare(cfg).centre()
@@ -88,5 +128,6 @@ def stall_message(cfg: Config, scene: SurfelScene, train: PosedViews, epochs: fl
         means = near if len(near) else means
     return (f"stage 1 learns nothing: after {epochs:.1f} epochs the val PSNR is {value:.2f} dB (at the start "
             f"{start:.2f} dB; a flat image of the val views' mean colour scores {flat:.2f} dB): "
-            f"{where_surfels(cfg, means, train.to('cpu'))}; {_advice(cfg, cfg.geometry.init)} "
+            f"{where_surfels(cfg, means, train.to('cpu'))}; {_advice(cfg, start_kind(cfg))} "
             f"(geometry.stall_epochs: 0 turns this check off)")
+

@@ -5,6 +5,7 @@ to set (:mod:`~nsplat.tasks.neural.diagnosis`)."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 from typing import Any
@@ -22,8 +23,10 @@ from nsplat.run.engine import write_json
 from nsplat.scene import SurfelScene
 from nsplat.tasks.neural.capture import prepare
 from nsplat.tasks.neural.config import Config
-from nsplat.tasks.neural.diagnosis import STALL_DB, STALL_MIN_STEPS, stall_message
+from nsplat.tasks.neural.diagnosis import GAP_DB, STALL_DB, STALL_MIN_STEPS, gap_message, stall_message
 from nsplat.tasks.neural.starts import initial_geometry
+
+log = logging.getLogger(__name__)
 
 
 def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedViews | None = None) -> SurfelScene:
@@ -43,12 +46,13 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
     val_sub = val.spread(cfg.eval.val_views) if val is not None else None
     steps_per_epoch = math.ceil(len(train) / g.optim.batch)
 
-    def render_psnr() -> float:
+    def render_psnr(views: PosedViews | None = None) -> float:
+        views = val_sub if views is None else views
         with torch.no_grad():
-            rgb = gateway.render_views(scene, val_sub.viewmats, val_sub.Ks, val_sub.width, val_sub.height,
+            rgb = gateway.render_views(scene, views.viewmats, views.Ks, views.width, views.height,
                                        cfg.eval_render(), seed=cfg.eval_seed(), shading=g.optim.shading,
-                                       background=val_sub.background, draws=cfg.eval.draws).clamp(0, 1)
-        return float(psnr(rgb, val_sub.images).mean())
+                                       background=views.background, draws=cfg.eval.draws).clamp(0, 1)
+        return float(psnr(rgb, views.images).mean())
 
     stall = None  # (start PSNR, flat-image PSNR) until the check has run
     if val_sub is not None and g.log.validate > 0 and g.stall_epochs > 0 and not ctx.resume:
@@ -73,6 +77,11 @@ def fit_geometry(cfg: Config, ctx: RunContext, train: PosedViews, val: PosedView
         fit(scene, train, g.optim, cfg.render, ctx.run_dir / "geometry", seed=ctx.seed, resume=ctx.resume,
             log=dataclasses.replace(g.log, progress=cfg.log.progress), background=train.background,
             desc="geometry", validate=validate if val_sub is not None and g.log.validate > 0 else None)
+    if distributed.is_main() and cfg.data.is_capture() and history and g.optim.epochs > 0:
+        trained = render_psnr(train.spread(cfg.eval.val_views))
+        if (gap := trained - history[-1]["val_psnr"]) > GAP_DB:
+            log.warning("stage 1 fits the training photos far better than it predicts the others: %s", gap_message(
+                cfg, trained, history[-1]["val_psnr"], gap))
     if distributed.is_main():
         scene.save_ply(ctx.run_dir / "geometry.ply")
     return scene

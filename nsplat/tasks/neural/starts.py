@@ -1,9 +1,11 @@
-"""The starts of the neural task's stage 1 (``geometry.init``, :func:`start_kind`): the visual hull of the
-training silhouettes, the SfM points of a COLMAP capture, a PLY of this project, of 3D Gaussian splatting or of a
-scanner, the point cloud a ``transforms.json`` names, or random points in the bounding box or the cameras' common
-view, plus, for unmasked photos, the background sphere of :mod:`~nsplat.tasks.neural.background`
-(:func:`initial_geometry`); and the stage-1 scene's config (:func:`geometry_scene_config`). A start most training
-views cannot see is refused (:func:`nsplat.tasks.neural.diagnosis.check_seen`)."""
+"""The starts of the neural task's stage 1 (``geometry.init``, :func:`~nsplat.tasks.neural.capture.start_kind`):
+the visual hull of the training silhouettes, the SfM points of a COLMAP capture (or of the model beside a
+``transforms.json``), the points triangulated from a ``transforms.json`` folder's photos, a PLY of this project, of
+3D Gaussian splatting or of a scanner, the point cloud a ``transforms.json`` names, or random points in the bounding
+box or the cameras' common view, plus, for unmasked photos, the background sphere of
+:mod:`~nsplat.tasks.neural.background` (:func:`initial_geometry`); and the stage-1 scene's config
+(:func:`geometry_scene_config`). A start most training views cannot see is refused
+(:func:`nsplat.tasks.neural.diagnosis.check_seen`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -24,7 +26,7 @@ from nsplat.gaussians.kernel import surfels_of_gaussians
 from nsplat.gaussians.ply import is_gaussian_ply, read_gaussian_ply
 from nsplat.scene import SceneConfig, SurfelScene, knn_spacing
 from nsplat.tasks.neural.background import sphere_background
-from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points
+from nsplat.tasks.neural.capture import background_sphere, prepare, scene_points, start_kind
 from nsplat.tasks.neural.config import FRAME_BOX, Config
 from nsplat.tasks.neural.diagnosis import check_seen
 from nsplat.tasks.neural.sfm_init import fill_box, fill_points, plane_normals, sfm_surfels
@@ -40,26 +42,11 @@ def geometry_scene_config(cfg: Config) -> SceneConfig:
                        feature_activation="identity" if g.optim.shading == "sh" else "sigmoid")
 
 
-def start_kind(cfg: Config) -> str:
-    """What ``geometry.init`` starts from, ``auto`` resolved (see its doc): ``hull``, ``ply``, ``random``, ``sfm``,
-    ``capture_ply`` (the point cloud a ``transforms.json`` names) or ``view_fill`` (random points in the
-    training cameras' common view)."""
-    g = cfg.geometry
-    if g.init != "auto":
-        return g.init
-    if cfg.data.source == "colmap":
-        return "sfm"
-    if cfg.data.source == "transforms":
-        if prepare(cfg).ply is not None:
-            return "capture_ply"
-        return "hull" if cfg.data.capture.masks else "view_fill"
-    return "hull"
-
-
 def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     """Stage 1's initial surfels (``geometry.init``, :func:`start_kind`): the visual hull's surface voxels, the
-    filtered SfM points, a PLY, a capture's point cloud, or random points in the box or in the cameras' common
-    view; with ``geometry.background.model: sphere`` the background surfels are appended. Opacities start at
+    filtered SfM or triangulated points (:func:`~nsplat.tasks.neural.sfm_init.sfm_surfels`), a PLY, a capture's
+    point cloud, or random points in the box or in the cameras' common view; with
+    ``geometry.background.model: sphere`` the background surfels are appended. Opacities start at
     ``geometry.init_opacity``, the random fills' (SfM and common view) at ``geometry.sfm.fill_opacity``."""
     g = cfg.geometry
     scfg = geometry_scene_config(cfg)
@@ -68,7 +55,7 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
     if kind == "ply":
         return _ply_scene(cfg, resolve(g.ply or ""), train, device, seed)
     spacing = None
-    if kind == "sfm":
+    if kind in ("sfm", "triangulated"):
         means, normals, colours, spacing = _sfm_points(cfg, train, seed)
     elif kind == "random":
         means, normals, colours = _random_points(scene_box(cfg, train, kind), g.max_points, seed)
@@ -82,17 +69,23 @@ def initial_geometry(cfg: Config, train: PosedViews, seed: int) -> SurfelScene:
                                                   torch.Generator().manual_seed(seed))
         except ValueError as exc:
             raise ConfigError(f"geometry.init: auto: {exc}") from exc
-        log.info("common-view start: %d random points in the box %s seen by %.0f%% of the training views",
-                 g.max_points, [round(v, 4) for v in box], 100 * g.sfm.fill_seen)
+        log.info("common-view start: %d random points in the box %s seen by %.0f%% of the training views%s",
+                 g.max_points, [round(v, 4) for v in box], 100 * g.sfm.fill_seen,
+                 f" ({prepare(cfg).note})" if cfg.data.is_capture() and prepare(cfg).note else "")
     else:
-        hp = hull_points(train.to("cpu"), scene_box(cfg, train, kind), g.grid, alpha_threshold=g.alpha_threshold,
-                         dilate=g.dilate, min_seen=g.min_seen, max_points=g.max_points, seed=seed)
+        box = scene_box(cfg, train, kind)
+        try:
+            hp = hull_points(train.to("cpu"), box, g.grid, alpha_threshold=g.alpha_threshold, dilate=g.dilate,
+                             min_seen=g.min_seen, max_points=g.max_points, seed=seed)
+        except ValueError as exc:  # an empty hull: a box that misses the scene
+            raise ConfigError(f"geometry.bbox: {[round(v, 3) for v in box]}: {exc} (null takes the scene's box from "
+                              f"the training silhouettes)") from exc
         log.info("visual hull: %d surface points (voxel %.4f)", hp.means.shape[0], hp.voxel)
         means, normals, colours = hp.means, hp.normals, hp.colours
     check_seen(cfg, means, train.to("cpu"), kind)
     scales = None
     opacities = torch.full((means.shape[0],), g.init_opacity)
-    if kind == "sfm" and g.sfm.fill > 0:                        # the fill rows end the SfM part
+    if kind in ("sfm", "triangulated") and g.sfm.fill > 0:     # the fill rows end the SfM part
         opacities[means.shape[0] - g.sfm.fill:] = g.sfm.fill_opacity
     if kind == "view_fill":
         opacities[:] = g.sfm.fill_opacity
@@ -231,7 +224,8 @@ def _sfm_points(cfg: Config, train: PosedViews, seed: int) -> tuple[torch.Tensor
                          k=s.k, std_ratio=s.std_ratio)
     except ValueError as exc:
         raise ConfigError(f"geometry.sfm: {exc}") from exc
-    log.info("SfM init: %d of %d points kept", sf.means.shape[0], len(points))
+    log.info("SfM init: %d of %d %s points kept", sf.means.shape[0], len(points),
+             "triangulated" if prepare(cfg).origin == "triangulated" else "SfM")
     keep = torch.arange(sf.means.shape[0])
     gen = torch.Generator().manual_seed(seed)
     if keep.numel() > cfg.geometry.max_points:
