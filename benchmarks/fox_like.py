@@ -81,14 +81,18 @@ def build(folder: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=Path, default=Path("runs/bench-fox_like"), help="where the capture and run go")
+    ap.add_argument("--reuse", action="store_true", help="train on the capture an earlier run built")
     args = ap.parse_args(argv)
     folder = args.runs / "capture"
-    if folder.exists():
-        shutil.rmtree(folder)
-    tmp = Path(tempfile.mkdtemp(prefix="fox-like-", dir=args.runs.parent if args.runs.parent.exists() else None))
-    made = build(tmp)
-    args.runs.mkdir(parents=True, exist_ok=True)
-    shutil.move(str(tmp), folder)
+    if args.reuse and (folder / "made.json").is_file():
+        made = json.loads((folder / "made.json").read_text())
+    else:
+        shutil.rmtree(folder, ignore_errors=True)
+        args.runs.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".fox-like-", dir=args.runs))
+        made = build(tmp)
+        (tmp / "made.json").write_text(json.dumps(made, indent=1))
+        shutil.move(str(tmp), folder)
     run = args.runs / "run"
     cost = run_config(REPO / "configs" / "transforms.yaml", run, [f"data.root={folder.resolve()}",
                                                                  "data.capture.downscale=1"])

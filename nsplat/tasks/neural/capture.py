@@ -266,6 +266,9 @@ def with_capture_render(cfg: Config) -> Config:
 FAR_POINTS = 1.5
 #: Fewest background points to fit the sphere to.
 MIN_FAR_POINTS = 20
+#: The background sphere's radius (camera distances) when ``geometry.background.radius`` is null and there are no
+#: points to fit it to.
+FALLBACK_RADIUS = 3.0
 
 
 def scene_points(cfg: Config) -> SfmPoints | None:
@@ -300,9 +303,10 @@ def background_sphere(cfg: Config) -> tuple[torch.Tensor, float]:
     if bg.radius is not None:
         return centre, bg.radius * radius
     points = prepare(cfg).points
-    if points is None or len(points) == 0:
-        raise ConfigError("geometry.background.radius: null needs SfM points (the model's points3D is empty); "
-                          "give a multiple of the camera distance")
+    if points is None or len(points) == 0:  # e.g. a transforms.json folder whose triangulation found too few
+        log.warning("geometry.background.radius: null, but there are no points to fit the background to: a sphere "
+                    "of %.1f camera distances about the scene centre", FALLBACK_RADIUS)
+        return centre, FALLBACK_RADIUS * radius
     s = cfg.geometry.sfm
     xyz = points.xyz[reliable(points, s.min_track, s.max_error)].double()
     far = xyz[(xyz - scene).norm(dim=1) > FAR_POINTS * radius]
