@@ -164,7 +164,8 @@ def _existing(paths: list[Path], what: str) -> None:
 
 
 def tum_files(root: Path, trajectory: str, groundtruth: str, max_dt: float) -> FrameFiles:
-    """Resolve a TUM folder: pair RGB with depth, then with the trajectory (and the ground truth)."""
+    """Resolve a TUM folder: pair RGB with depth, then with the trajectory (and the ground truth). An empty
+    ``trajectory`` keeps every RGB-D pair with identity poses (a trajectory to be estimated from the frames)."""
     if not root.is_dir():
         raise DataError(f"{root}: no such RGB-D sequence folder")
     rgb_t, rgb_f = read_file_list(root / "rgb.txt")
@@ -172,8 +173,12 @@ def tum_files(root: Path, trajectory: str, groundtruth: str, max_dt: float) -> F
     pairs = associate(rgb_t, dep_t, max_dt)
     if not pairs:
         raise DataError(f"{root}: no RGB and depth frames within {max_dt} s of each other (data.rgbd.max_dt)")
-    traj_path = _resolve(root, trajectory)
-    traj_t, traj = read_trajectory(traj_path)
+    if trajectory:
+        traj_path = _resolve(root, trajectory)
+        traj_t, traj = read_trajectory(traj_path)
+    else:  # to be estimated from the frames: every RGB-D pair, at the identity for now
+        traj_path, traj_t = root / "rgb.txt", rgb_t[[i for i, _ in pairs]]
+        traj = torch.eye(4, dtype=torch.float64).expand(len(pairs), 4, 4).clone()
     pose_of = dict(associate(rgb_t[[i for i, _ in pairs]], traj_t, max_dt))
     keep = [k for k in range(len(pairs)) if k in pose_of]
     if len(keep) < MIN_FRAMES:

@@ -195,7 +195,12 @@ def _initial(model: Refiner, data: RefineData, cfg: Config, ctx: RunContext, see
         init["heldout_fitted"] = fitted["heldout"]
         init["heldout_fitted"].update({k: fitted[k] for k in fitted if k.startswith(("ate", "rpe"))})
     torch.save({k: v.cpu() for k, v in renders.items()}, ctx.run_dir / "renders_initial.pt")
-    write_tum(ctx.run_dir / "trajectory_initial.txt", data.sequence.c2w, data.sequence, "initial trajectory")
+    write_tum(ctx.run_dir / "trajectory_initial.txt", data.sequence.c2w, data.sequence,
+              f"initial trajectory ({data.sequence.source.get('trajectory', '')})")
+    if data.sequence.source.get("trajectory") == "estimate":
+        write_tum(ctx.run_dir / "trajectory_estimate.txt", data.sequence.c2w, data.sequence,
+                  "trajectory estimated from the frames (nsplat.data.tracking)")
+    init["source"] = data.sequence.source
     return init
 
 

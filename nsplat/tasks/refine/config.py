@@ -7,6 +7,7 @@ from typing import Literal
 
 from nsplat.config import ConfigError, require, require_fields
 from nsplat.data.fusion import FusionConfig
+from nsplat.data.tracking import TrackingConfig
 from nsplat.render.renderer import RenderConfig
 from nsplat.run.engine import LogConfig
 from nsplat.scene import SceneConfig
@@ -50,7 +51,9 @@ class RGBDSource:
         root: the sequence folder; empty: ``<data root>/rgbd/tum_fr1_rpy_50`` (:mod:`nsplat.data.paths`).
         layout: ``tum`` (rgb.txt, depth.txt, TUM trajectory files) or ``folder`` (``<frame>.color.png``,
             ``<frame>.depth.png``, ``<frame>.pose.txt`` camera → world 4×4, and ``intrinsics_file``).
-        trajectory: the trajectory to refine (TUM layout; relative to ``root`` unless absolute).
+        trajectory: the trajectory to refine (TUM layout; relative to ``root`` unless absolute); ``estimate``:
+            track the frames (:mod:`nsplat.data.tracking`; every frame, as a SLAM system would);
+            ``auto``: ``odometry.txt`` when the folder has one, else ``estimate``.
         groundtruth: a ground-truth trajectory for ATE / RPE ("" : none).
         intrinsics_file: the folder layout's 3×3 intrinsics file ("" : ``intrinsics`` or ``camera``).
         camera: a TUM camera preset (``fr1``, ``fr2``, ``fr3``) used when ``intrinsics`` is empty.
@@ -67,11 +70,12 @@ class RGBDSource:
         cloud: a PLY of the SLAM system's surfels (``x y z``; ``nx ny nz``, ``red green blue`` and ``radius``
             when present) instead of fusing the depth.
         fusion: :class:`nsplat.data.fusion.FusionConfig`.
+        tracking: :class:`nsplat.data.tracking.TrackingConfig` (with ``trajectory: estimate``).
     """
 
     root: str = ""
     layout: Literal["tum", "folder"] = "tum"
-    trajectory: str = "odometry.txt"
+    trajectory: str = "auto"
     groundtruth: str = "groundtruth.txt"
     intrinsics_file: str = ""
     camera: str = "fr1"
@@ -87,6 +91,7 @@ class RGBDSource:
     valid: Literal["depth", "image"] = "depth"
     cloud: str = ""
     fusion: FusionConfig = dataclasses.field(default_factory=FusionConfig)
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         require_fields(self, depth_scale=">0", max_dt=">0", downscale=">=1", stride=">=1", limit=">=0",

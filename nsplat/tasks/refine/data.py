@@ -8,7 +8,10 @@ from the training frames' depth along the given trajectory (or read from the SLA
 from __future__ import annotations
 
 import dataclasses
+import logging
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,11 +23,14 @@ from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
 from nsplat.data.pointclouds import read_point_ply, read_vertex_element
 from nsplat.data.rgbd import RGBDSequence, camera_of, folder_files, load_frames, tum_files
+from nsplat.data.tracking import TrackingConfig, track
 from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
 from nsplat.scene import SurfelScene
 from nsplat.tasks.refine.config import Config, RGBDSource
 from nsplat.tasks.refine.room import load_room
+
+log = logging.getLogger("nsplat.tasks.refine")
 
 #: The default RGB-D sequence under the data root (``nsplat data fetch tum_fr1_rpy`` has the whole sequence).
 DEFAULT_RGBD = "rgbd/tum_fr1_rpy_50"
@@ -33,14 +39,16 @@ DEFAULT_RGBD = "rgbd/tum_fr1_rpy_50"
 @dataclasses.dataclass
 class Sequence:
     """The timeline of an RGB-D source: every frame's timestamp ``[F]`` (float64), the initial camera → world poses
-    ``c2w [F,4,4]`` (float64), the ground truth ``c2w_gt [F,4,4]`` or ``None``, and which frames train
-    (``train``) and which are held out (``heldout``), as indices into the timeline."""
+    ``c2w [F,4,4]`` (float64), the ground truth ``c2w_gt [F,4,4]`` or ``None``, which frames train
+    (``train``) and which are held out (``heldout``), as indices into the timeline, and where the initial
+    trajectory came from (``source``: ``{"trajectory": file name or "estimate", ...the tracker's figures}``)."""
 
     timestamps: torch.Tensor
     c2w: torch.Tensor
     c2w_gt: torch.Tensor | None
     train: list[int]
     heldout: list[int]
+    source: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -87,11 +95,27 @@ def _slam_cloud(path: Path, cfg: Config) -> SurfelScene:
                                    opacities=cfg.data.init_opacity, features=colours)
 
 
+def estimated(seq: RGBDSequence, cfg: TrackingConfig, progress: bool) -> tuple[RGBDSequence, dict[str, Any]]:
+    """``seq`` with the trajectory tracked from its frames (:func:`nsplat.data.tracking.track`: every frame, as
+    a SLAM system tracks them; the held-out split applies to the refinement) and the tracker's figures
+    (``tracker``, ``keyframes``, ``lost``, ``wall_s``, ``cpu_s``, ``fps``). The ground truth is not read."""
+    clock = (time.perf_counter(), time.process_time())
+    out = track(seq.depths, seq.images, seq.Ks, cfg, progress=progress, masks=seq.valid)
+    wall, cpu = time.perf_counter() - clock[0], time.process_time() - clock[1]
+    log.info("tracking: %d frames in %.1f s (%.1f frames/s), %d keyframes, %d lost", len(seq), wall,
+             len(seq) / wall, len(out.keyframes), len(out.lost))
+    info = {"trajectory": "estimate", "tracker": "nsplat frame-to-model (nsplat.data.tracking)",
+            "keyframes": len(out.keyframes), "lost": out.lost, "wall_s": wall, "cpu_s": cpu, "fps": len(seq) / wall}
+    return dataclasses.replace(seq, c2w=out.c2w), info
+
+
 def load_rgbd(src: RGBDSource, cfg: Config, progress: bool = True) -> RefineData:
     """Frames, held-out frames, timeline and the initial scene of an RGB-D source (on the CPU)."""
     root = resolve_data(src.root, DEFAULT_RGBD)
+    estimate = src.trajectory == "estimate" or (src.trajectory == "auto" and not (root / "odometry.txt").is_file())
+    name = "" if estimate else ("odometry.txt" if src.trajectory == "auto" else src.trajectory)
     if src.layout == "tum":
-        files = tum_files(root, src.trajectory, src.groundtruth, src.max_dt)
+        files = tum_files(root, name, src.groundtruth, src.max_dt)
     else:
         files = folder_files(root, src.intrinsics_file)
     pick = list(range(0, len(files.color), src.stride))[:src.limit or None]
@@ -106,12 +130,15 @@ def load_rgbd(src: RGBDSource, cfg: Config, progress: bool = True) -> RefineData
     seq = load_frames(files, camera, depth_scale=src.depth_scale, depth_range=tuple(src.depth_range),
                       downscale=src.downscale, progress=progress)
     train, held = split(len(seq), src.holdout_every)
+    source: dict[str, Any] = {"trajectory": name if src.layout == "tum" else "pose files"}
+    if estimate:
+        seq, source = estimated(seq, src.tracking, progress)
     tr = seq.subset(train)
     if scene is None:
         s = fuse(tr.depths, tr.images, tr.Ks, tr.c2w, src.fusion, progress=progress)
         scene = SurfelScene.from_points(cfg.scene, s.means, s.normals, scales=s.scales[:, None].expand(-1, 2),
                                         opacities=cfg.data.init_opacity, features=s.colours)
-    timeline = Sequence(seq.timestamps, seq.c2w, seq.c2w_gt, train, held)
+    timeline = Sequence(seq.timestamps, seq.c2w, seq.c2w_gt, train, held, source)
     return RefineData(_views(tr, src.valid), scene, _views(seq.subset(held), src.valid) if held else None, timeline)
 
 
