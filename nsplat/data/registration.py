@@ -22,6 +22,7 @@ half-integer pixel centres make the intrinsics scale exactly).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +34,8 @@ from nsplat.data.rgbd import downscale_depth
 
 #: ITU-R BT.601 luma weights: colour → intensity.
 LUMA = (0.299, 0.587, 0.114)
+#: Fewest pixels on a pyramid level's short side (coarser levels carry too few pixels to register).
+MIN_LEVEL_SIZE = 24
 
 
 @dataclasses.dataclass
@@ -47,6 +50,8 @@ class AlignConfig:
         photometric: weight of the photometric term relative to the geometric one (0: geometry only).
         sigma_geometric: point-to-plane noise level (metres).
         sigma_photometric: intensity noise level.
+        sigma_depth: growth of the point-to-plane noise with depth: ``σ(z) = sigma_geometric + sigma_depth ·
+            (z − 0.4)²`` (metres; a structured-light sensor's axial noise, Nguyen et al. 3DIMPVT 2012: 0.0019).
         huber: Huber threshold in noise-level units.
         model_points: at most this many model points per level's iteration (the finest level; each coarser level
             takes half), drawn evenly from the points in view.
@@ -64,6 +69,7 @@ class AlignConfig:
     photometric: float = 1.0
     sigma_geometric: float = 0.005
     sigma_photometric: float = 0.03
+    sigma_depth: float = 0.0019
     huber: float = 2.0
     model_points: int = 12000
     min_pairs: int = 200
@@ -72,8 +78,8 @@ class AlignConfig:
 
     def __post_init__(self) -> None:
         require_fields(self, levels=">=1", normal_cos="unit", photometric=">=0", sigma_geometric=">0",
-                       sigma_photometric=">0", huber=">0", model_points=">=100", min_pairs=">=6", prior_trans=">=0",
-                       prior_rot=">0")
+                       sigma_photometric=">0", sigma_depth=">=0", huber=">0", model_points=">=100",
+                       min_pairs=">=6", prior_trans=">=0", prior_rot=">0")
         require(len(self.iterations) == self.levels and all(i >= 0 for i in self.iterations), "iterations",
                 f"{self.levels} counts >= 0 (one per level, coarse to fine)", self.iterations)
         require(len(self.max_dist) == self.levels and all(d > 0 for d in self.max_dist), "max_dist",
@@ -101,8 +107,10 @@ def intensity(image: torch.Tensor) -> torch.Tensor:
 def frame_pyramid(depth: torch.Tensor, image: torch.Tensor, K: torch.Tensor, levels: int,
                   mask: torch.Tensor | None = None) -> list[FrameLevel]:
     """The pyramid of one frame, finest first: ``depth [H,W]`` metres (0 invalid), ``image [H,W,3]``, ``K [3,3]``
-    (pixel centres at half-integers), optional ``mask [H,W]`` of usable pixels."""
+    (pixel centres at half-integers), optional ``mask [H,W]`` of usable pixels. At most ``levels`` levels, fewer
+    where a coarser one would be under :data:`MIN_LEVEL_SIZE` pixels on its short side."""
     cfg = FusionConfig()
+    levels = max(1, min(levels, 1 + int(math.floor(math.log2(min(depth.shape) / MIN_LEVEL_SIZE)))))
     d = depth.float() if mask is None else torch.where(mask, depth.float(), torch.zeros_like(depth.float()))
     gray = intensity(image.float())
     K = K.float()
@@ -206,12 +214,13 @@ def _system(lvl: FrameLevel, q: torch.Tensor, m: torch.Tensor, c: torch.Tensor, 
     if n < need:
         return A, g, n, float("nan")
     # geometric: r = m·(p − q), J = [m, p×m] (left perturbation of c2w), exposure columns 0
-    rg = (ms * diff).sum(-1) / cfg.sigma_geometric
-    Jg = torch.cat([ms, torch.cross(p, ms, dim=-1), torch.zeros(n, 2)], 1) / cfg.sigma_geometric
+    sigma = cfg.sigma_geometric + cfg.sigma_depth * (vf[keep, 2] - 0.4).clamp_min(0) ** 2
+    rg = (ms * diff).sum(-1) / sigma
+    Jg = torch.cat([ms, torch.cross(p, ms, dim=-1), torch.zeros(n, 2)], 1) / sigma[:, None]
     wg = _huber(rg, cfg.huber)
     A += (Jg.double().T * wg.double()) @ Jg.double()
     g += (Jg.double().T * wg.double()) @ rg.double()
-    rms = float((rg * cfg.sigma_geometric).square().mean().sqrt())
+    rms = float((rg * sigma).square().mean().sqrt())
     if cfg.photometric > 0:
         uu, vv, zz, qcs = u[sel], v[sel], zs[sel], qc[sel]
         a, b = exposure
@@ -254,7 +263,7 @@ def align(pyramid: list[FrameLevel], model: PointModel, c2w: torch.Tensor, cfg: 
     H, W = fine.ok.shape
     view = _in_view(model, T, fine.K, H, W, 0.25)
     ok, inliers, rms = True, 0, float("nan")
-    for lev in reversed(range(cfg.levels)):
+    for lev in reversed(range(min(cfg.levels, len(pyramid)))):
         k = cfg.levels - 1 - lev  # position in the coarse → fine lists
         lvl = pyramid[lev]
         budget = max(100, cfg.model_points // 2 ** lev)
