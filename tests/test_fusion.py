@@ -7,6 +7,7 @@ independently computed confidence weights.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,7 +16,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from nsplat.cameras import intrinsics_from_fov
-from nsplat.data.fusion import RADIAL_SIGMA, FusionConfig, Surfels, frame_vertices, fuse
+from nsplat.data.fusion import RADIAL_SIGMA, FusionConfig, SurfelMap, Surfels, frame_vertices, fuse, fuse_frames
 from nsplat.data.raytrace import Box, Material, Plane, Sphere, camera_rays, intersect
 from nsplat.tasks.refine.room import room_primitives, trajectory
 
@@ -124,28 +125,201 @@ def test_fused_room_normals_agree_with_the_surfaces(room):
     assert float((ang < 5.0).double().mean()) > 0.9
 
 
-def test_point_budget_grows_the_voxel(room):
-    """With ``voxel = 0`` the voxel starts at the median pixel footprint and grows until at most ``max_points``
-    surfels remain: the budget holds, a smaller budget means a larger voxel, and the voxel is not grown far past
-    what the budget needs (more than half the budget is used); the surfels still lie on the surfaces."""
-    cfg = FusionConfig(edge=ROOM_EDGE)
-    radius = torch.cat([frame_vertices(room["depths"][b], room["Ks"][b], cfg)["radius"]
-                        for b in range(room["depths"].shape[0])])
+def test_point_cap_doubles_the_voxel(room):
+    """With ``voxel = 0`` the voxel starts at the first frame's median pixel footprint and doubles whenever the map
+    passes ``max_points``: the cap holds, the voxel is the start times a power of two, and half of it would not
+    have met the cap (the voxel is not grown further than the cap needs); a smaller cap means a larger voxel; the
+    surfels still lie on the surfaces, their scales at least ``scale_factor · voxel``."""
+    cfg = FusionConfig(voxel=0.0, edge=ROOM_EDGE)
+    start = float(frame_vertices(room["depths"][0], room["Ks"][0], cfg, dtype=torch.float32)["radius"].median())
     free = fuse(room["depths"], room["images"], room["Ks"], room["c2w"],
-                FusionConfig(max_points=10 ** 6, edge=ROOM_EDGE), progress=False)
-    assert free.voxel == pytest.approx(float(radius.median()))
+                dataclasses.replace(cfg, max_points=10 ** 6), progress=False)
+    assert free.voxel == pytest.approx(start)
     voxels = []
     for budget in (600, 150):
         assert free.means.shape[0] > budget
-        s = fuse(room["depths"], room["images"], room["Ks"], room["c2w"],
-                 FusionConfig(max_points=budget, edge=ROOM_EDGE), progress=False)
-        assert budget // 2 < s.means.shape[0] <= budget
-        assert s.voxel > free.voxel
+        s = fuse(room["depths"], room["images"], room["Ks"], room["c2w"], dataclasses.replace(cfg, max_points=budget),
+                 progress=False)
+        assert s.means.shape[0] <= budget
+        k = math.log2(s.voxel / start)
+        assert k >= 1 and k == pytest.approx(round(k), abs=1e-9)
+        finer = fuse(room["depths"], room["images"], room["Ks"], room["c2w"],
+                     FusionConfig(voxel=s.voxel / 2, max_points=10 ** 6, edge=ROOM_EDGE), progress=False)
+        assert finer.means.shape[0] > budget
         assert float(_surface_distance(s.means.double(), room["prims"]).max()) <= math.sqrt(3.0) * s.voxel
-        # scales: scale_factor × max(footprint radius, voxel)
         assert float(s.scales.min()) >= cfg.scale_factor * s.voxel * (1 - 1e-6)
         voxels.append(s.voxel)
     assert voxels[1] > voxels[0]
+
+
+def test_doubling_rebins_exactly(room):
+    """A map that doubled its voxel from v to 2v (the cap passed at the last frame) holds the surfels of fusing on
+    the 2v grid from the start: the same voxels, means, normals, colours and radii to float32 precision; frame
+    counts are a lower bound (the largest of the merged voxels')."""
+    v = 0.02
+    order = [0, 1, 2, 3, 0]
+    args = [room[k][order] for k in ("depths", "images", "Ks", "c2w")]
+    direct = fuse(*args, FusionConfig(voxel=2 * v, max_points=10 ** 6, edge=ROOM_EDGE), progress=False)
+    fmap = SurfelMap(FusionConfig(voxel=v, max_points=10 ** 6, edge=ROOM_EDGE))
+    for b in range(4):
+        fmap.add(*(a[b] for a in args))
+    assert len(fmap) > direct.means.shape[0]
+    fmap.cfg = dataclasses.replace(fmap.cfg, max_points=direct.means.shape[0])  # the next add passes it once
+    fmap.add(*(a[4] for a in args))
+    assert fmap.doublings == 1 and fmap.voxel == 2 * v
+    s = fmap.surfels()
+    order_s, order_d = _by_voxel(s), _by_voxel(direct)
+    assert torch.equal(order_s[0], order_d[0])
+    i, j = order_s[1], order_d[1]
+    assert torch.allclose(s.means[i], direct.means[j], atol=1e-5, rtol=0)
+    assert torch.allclose(s.normals[i], direct.normals[j], atol=1e-5)
+    assert torch.allclose(s.colours[i], direct.colours[j], atol=1e-5)
+    assert torch.allclose(s.scales[i], direct.scales[j], rtol=1e-5)
+    assert bool((s.frames[i] <= direct.frames[j]).all() and (s.frames[i] >= 1).all())
+
+
+def _by_voxel(s: Surfels) -> tuple[torch.Tensor, torch.Tensor]:
+    """The surfels' voxels (each mean lies inside its voxel: a convex combination of its points) as sorted keys
+    ``[N]`` and the order ``[N]`` that sorts them."""
+    q = torch.floor(s.means.double() / s.voxel).long()
+    key = ((q[:, 0] + 4096) * 8192 + q[:, 1] + 4096) * 8192 + q[:, 2] + 4096
+    key, order = torch.sort(key)
+    return key, order
+
+
+def _batch_fuse(depths, images, Ks, c2w, cfg: FusionConfig, origin: str) -> dict[str, torch.Tensor]:
+    """The fusion as it was before it streamed (all frames' candidates in float64, one merge): ``origin = "zero"``
+    puts the voxel grid at the world origin as the map does, ``"min"`` at the candidates' minimum as before."""
+    names = ("points", "normals", "colours", "radius", "weight", "frame")
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in names}
+    for b in range(depths.shape[0]):
+        c = frame_vertices(depths[b], Ks[b], cfg)
+        R, t = c2w[b, :3, :3].double(), c2w[b, :3, 3].double()
+        parts["points"].append(c["points"] @ R.T + t)
+        parts["normals"].append(c["normals"] @ R.T)
+        parts["colours"].append(images[b].reshape(-1, images.shape[-1])[c["index"]].double())
+        parts["radius"].append(c["radius"])
+        parts["weight"].append(c["weight"])
+        parts["frame"].append(torch.full_like(c["radius"], b, dtype=torch.long))
+    c = {k: torch.cat(v) for k, v in parts.items()}
+    p = c["points"] - (c["points"].min(0).values if origin == "min" else 0.0)
+    q = torch.floor(p / cfg.voxel).long()
+    q -= q.min(0).values
+    dims = q.max(0).values + 1
+    _, inv = torch.unique((q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2], return_inverse=True)
+    V = int(inv.max()) + 1
+    w = c["weight"]
+    wsum = torch.zeros(V, dtype=F64).index_add_(0, inv, w)
+
+    def mean(x: torch.Tensor) -> torch.Tensor:
+        wx = x * w.reshape(-1, *[1] * (x.dim() - 1))
+        return torch.zeros(V, *x.shape[1:], dtype=F64).index_add_(0, inv, wx) / wsum.reshape(-1, *[1] * (x.dim() - 1))
+
+    seen = torch.zeros(V, depths.shape[0], dtype=torch.bool)
+    seen[inv, c["frame"]] = True
+    return {"means": mean(c["points"]), "normals": torch.nn.functional.normalize(mean(c["normals"]), dim=-1),
+            "colours": mean(c["colours"]), "radius": mean(c["radius"]), "frames": seen.sum(1)}
+
+
+def test_streaming_equals_batch(room):
+    """The streaming map (float32 vertices and accumulators) gives the surfels of the former all-candidates float64
+    fusion on the same grid: the same voxels (but for a few points on a voxel boundary in one precision and not
+    the other), means within 10 µm, normals within 0.1°, the same colours, radii and frame counts. Against the former
+    grid origin (the candidates' minimum) the surfels differ only by where the voxel boundaries fall: the same count
+    within 3 %, every surfel within a voxel diagonal of one of the former, and as close to the surfaces."""
+    cfg = FusionConfig(voxel=0.03, max_points=10 ** 6, edge=ROOM_EDGE)
+    # the room's walls lie on grid planes (x = 0, ...): moved off them, no wall straddles a voxel boundary
+    shift = torch.tensor([0.0123, 0.0071, 0.0047], dtype=F64)
+    c2w = room["c2w"].clone()
+    c2w[:, :3, 3] += shift
+    args = (room["depths"], room["images"], room["Ks"], c2w)
+    s = fuse(*args, cfg, progress=False)
+    ref = _batch_fuse(*args, cfg, origin="zero")
+    r = Surfels(ref["means"].float(), ref["normals"].float(), ref["colours"].float(),
+                (cfg.scale_factor * ref["radius"].clamp_min(cfg.voxel)).float(), ref["frames"].int(), cfg.voxel)
+    ks, i = _by_voxel(s)
+    kr, j = _by_voxel(r)
+    common, ci, cj = np.intersect1d(ks.numpy(), kr.numpy(), return_indices=True)
+    assert len(common) >= 0.995 * max(len(ks), len(kr)), (len(common), len(ks), len(kr))
+    i, j = i[torch.from_numpy(ci)], j[torch.from_numpy(cj)]
+    close = (s.means[i] - r.means[j]).norm(dim=-1) < 1e-5
+    assert float(close.double().mean()) > 0.99  # a voxel that gained or lost a boundary point moves a little
+    ang = torch.rad2deg(torch.acos((s.normals[i] * r.normals[j]).sum(-1).clamp(-1, 1)))[close]
+    assert float(ang.max()) < 0.1
+    assert torch.allclose(s.colours[i][close], r.colours[j][close], atol=1e-5)
+    assert torch.allclose(s.scales[i][close], r.scales[j][close], rtol=1e-5)
+    assert bool((s.frames[i] == r.frames[j]).double().mean() > 0.99)
+
+    before = _batch_fuse(*args, cfg, origin="min")
+    n = before["means"].shape[0]
+    assert abs(s.means.shape[0] - n) <= 0.03 * n
+    gap, _ = cKDTree(before["means"].numpy()).query(s.means.double().numpy())
+    assert gap.max() < math.sqrt(3.0) * cfg.voxel
+    d_now = _surface_distance(s.means.double() - shift, room["prims"])
+    d_before = _surface_distance(before["means"] - shift, room["prims"])
+    assert float(d_now.quantile(0.98)) <= float(d_before.quantile(0.98)) + 1e-5
+    assert float(d_now.max()) <= math.sqrt(3.0) * cfg.voxel
+
+
+def test_map_size_is_independent_of_the_frame_count(room):
+    """Fusing the same four views ten times over (a long sequence revisiting a room) keeps the map at the size of
+    one pass, its bytes included (memory is the map plus one frame), and the surfels unchanged but for the frame
+    counts (ten times as many); a generator of frames (:func:`fuse_frames`) streams the same way."""
+    cfg = FusionConfig(voxel=0.03, edge=ROOM_EDGE)
+    views = list(zip(room["depths"], room["images"], room["Ks"], room["c2w"]))
+    fmap = SurfelMap(cfg)
+    for v in views:
+        fmap.add(*v)
+    once, size, nbytes = fmap.surfels(), len(fmap), fmap.nbytes
+    for _ in range(9):
+        for v in views:
+            fmap.add(*v)
+            assert len(fmap) == size and fmap.nbytes == nbytes
+    ten = fmap.surfels()
+    assert fmap.added == 40 and torch.equal(ten.frames, 10 * once.frames)
+    assert torch.allclose(ten.means, once.means, atol=1e-5, rtol=0)
+    assert torch.allclose(ten.colours, once.colours, atol=1e-5)
+    streamed = fuse_frames((v for _ in range(10) for v in views), cfg, progress=False)
+    assert torch.equal(streamed.means, ten.means) and torch.equal(streamed.frames, ten.frames)
+
+
+def test_map_stays_under_the_cap_while_streaming(room):
+    """With a cap, the map never holds more than ``max_points`` surfels after any frame, whatever the count of frames
+    added: each frame shifted by a jittered translation (new voxels every time) doubles the voxel instead."""
+    cfg = FusionConfig(voxel=0.01, max_points=400, edge=ROOM_EDGE)
+    fmap = SurfelMap(cfg)
+    g = torch.Generator().manual_seed(3)
+    sizes = []
+    for k in range(24):
+        b = k % room["depths"].shape[0]
+        pose = room["c2w"][b].clone()
+        pose[:3, 3] += 0.05 * torch.randn(3, generator=g, dtype=F64)
+        fmap.add(room["depths"][b], room["images"][b], room["Ks"][b], pose)
+        sizes.append(len(fmap))
+    assert max(sizes) <= cfg.max_points and fmap.doublings >= 2 and fmap.voxel == 0.01 * 2 ** fmap.doublings
+    assert fmap.surfels().means.shape[0] == sizes[-1]
+
+
+def test_surfel_map_min_frames_and_bad_frames():
+    """A map read out after each frame: the frame counts grow as frames overlap, ``min_frames`` keeps only voxels
+    seen that often; a frame of the wrong shape or colour channels raises ValueError."""
+    W, H, f = 16, 12, 16.0
+    K = _intrinsics(f, W, H)
+    fmap = SurfelMap(FusionConfig(voxel=0.3, min_frames=2))
+    pose = torch.eye(4, dtype=F64)
+    fmap.add(torch.full((H, W), 2.0), torch.rand(H, W, 3), K, pose)
+    assert len(fmap) > 0 and bool((fmap.frames == 1).all())
+    with pytest.raises(ValueError, match="no valid depth"):  # nothing seen twice yet: min_frames leaves nothing
+        fmap.surfels() if False else SurfelMap().surfels()
+    pose = pose.clone()
+    pose[0, 3] = 1.0
+    fmap.add(torch.full((H, W), 2.0), torch.rand(H, W, 3), K, pose)
+    s = fmap.surfels()
+    assert bool((s.frames == 2).all()) and 0 < s.means.shape[0] < len(fmap)
+    with pytest.raises(ValueError, match=r"expected depth \[H,W\]"):
+        fmap.add(torch.full((1, H, W), 2.0), torch.rand(H, W, 3), K, pose)
+    with pytest.raises(ValueError, match="colour channels"):
+        fmap.add(torch.full((H, W), 2.0), torch.rand(H, W, 1), K, pose)
 
 
 def _intrinsics(f: float, W: int, H: int) -> torch.Tensor:
@@ -224,6 +398,8 @@ def test_colours_are_confidence_weighted_means():
     images = torch.zeros(2, H, W, 3)
     images[0, ..., 0] = 1.0
     images[1, ..., 2] = 1.0
+    shift = torch.tensor([10.0, 10.0, 0.0], dtype=F64)  # the voxel grid starts at the origin: one voxel holds all
+    c2w[:, :3, 3] = shift
     s = fuse(torch.stack(depths).float(), images, K.float().expand(2, 3, 3), c2w, FusionConfig(voxel=100.0),
              progress=False)
     assert s.means.shape[0] == 1 and int(s.frames[0]) == 2
@@ -232,7 +408,7 @@ def test_colours_are_confidence_weighted_means():
         assert abs(share - float(other[1] / (other[0] + other[1]))) > 0.01
     assert torch.allclose(s.colours[0].double(), torch.tensor([1 - share, 0.0, share], dtype=F64), atol=1e-5), \
         (s.colours[0], share)
-    assert torch.allclose(s.means[0].double(), (wpts[0] + wpts[1]) / (sums[0] + sums[1]), atol=1e-5)
+    assert torch.allclose(s.means[0].double(), (wpts[0] + wpts[1]) / (sums[0] + sums[1]) + shift, atol=1e-5)
     assert torch.allclose(s.normals[0].double(), torch.tensor([0.0, 0.0, -1.0], dtype=F64), atol=1e-5)
 
 
@@ -280,7 +456,7 @@ def test_single_frame_identity_pose_reproduces_camera_space_vertices():
     assert dist.max() < 2e-6
     assert len(set(j.tolist())) == len(j)  # one surfel per pixel
     j = torch.from_numpy(j)
-    assert torch.equal(s.colours, image.reshape(-1, 3)[j])
+    assert torch.allclose(s.colours, image.reshape(-1, 3)[j], atol=1e-6, rtol=0)  # (w·c)/w in float32
     assert bool((s.frames == 1).all())
     ang = torch.rad2deg(torch.acos((s.normals.double() * hit_normals[j]).sum(-1).clamp(-1, 1)))
     assert float(ang.max()) < 1.5, float(ang.max())

@@ -36,12 +36,13 @@ def sequence(tmp_path_factory) -> dict[str, object]:
 
 def _config(tmp: Path, seq: dict[str, object], steps: int = 100, **over: object) -> Path:
     """A small refine_tum config on the synthetic sequence, written to ``tmp``: the shipped recipe less the
-    smooth-motion prior (the synthetic cameras jump along an arc, they do not move like a hand-held camera)."""
+    smooth-motion prior (the synthetic cameras jump along an arc, they do not move like a hand-held camera) and
+    less the re-tracking (tests/test_tracking.py runs it), so the refinement starts from the odometry."""
     raw = read_yaml(config_dir() / "refine_tum.yaml")
     rg = raw["data"]["rgbd"]
     rg.update(root=str(seq["folder"]), intrinsics=seq["intrinsics"], distortion=[], downscale=1, holdout_every=5,
-              depth_range=[0.1, 8.0])
-    rg["fusion"] = {"max_points": 12000, "scale_factor": 0.6}
+              depth_range=[0.1, 8.0], retrack=False)
+    rg["fusion"] = {"voxel": 0.03, "max_points": 20000, "scale_factor": 0.6}  # ~13k surfels
     raw["render"]["samples"] = 8
     raw["optim"]["steps"] = steps
     raw["optim"]["decay_every"] = 0
@@ -74,7 +75,10 @@ def test_refinement_lowers_the_trajectory_error(sequence, tmp_path, capsys):
     assert m["before"]["ate_rmse"] == pytest.approx(odo_ate, rel=1e-5)  # cameras are float32 viewmats
     assert m["after"]["ate_rmse"] < 0.9 * m["before"]["ate_rmse"], m
     assert m["after"]["rpe_trans_rmse"] < m["before"]["rpe_trans_rmse"], m
-    assert m["after"]["heldout"]["psnr"] > m["before"]["heldout"]["psnr"] + 1.0, m
+    # the fair protocol (heldout.fit_before, the default): both sides' held-out cameras fitted the same way
+    assert "both sides scored after the same per-frame camera + exposure fit" in out
+    assert m["after"]["heldout"]["psnr"] > m["before"]["heldout"]["psnr"] + 0.5, m
+    assert m["after"]["heldout"]["psnr"] > m["before"]["heldout_unfitted"]["psnr"] + 1.0, m
     assert m["frames"] == {"train": 8, "heldout": 2} and m["resolution"] == [128, 96]
     stamps, traj = read_trajectory(run / "trajectory.txt")
     assert traj.shape == (10, 4, 4)

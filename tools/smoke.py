@@ -35,12 +35,16 @@ SMOKE: dict[str, list[str]] = {
     "benchmarks.gpu_lego": ["--device", "cpu", "--quick"],
     "benchmarks.gt_views": ["--smoke"],
     "benchmarks.refine_memory": ["--smoke"],
+    "benchmarks.fusion_scaling": ["--smoke"],
     "benchmarks.refine_tum": ["--smoke"],
+    "benchmarks.refine_drift": ["--smoke"],
+    "benchmarks.tracking": ["--sequences", "tum_fr1_rpy_50", "--limit", "6", "--rounds", "0"],
     "benchmarks.scenes": ["--smoke"],
 }
 #: Scripts that read a data set (relative to ``$NSPLAT_DATA``).
 NEEDS_DATA = {"benchmarks.tradeoff": "dss_pointclouds", "benchmarks.gt_views": "dss_pointclouds",
-              "benchmarks.refine_tum": "rgbd/tum_fr1_rpy_50"}
+              "benchmarks.refine_tum": "rgbd/tum_fr1_rpy_50", "benchmarks.refine_drift": "rgbd/tum_fr1_rpy_50",
+              "benchmarks.tracking": "rgbd/tum_fr1_rpy_50"}
 #: Seconds one smoke command may take.
 TIMEOUT_S = 120
 

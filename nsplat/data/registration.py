@@ -291,4 +291,4 @@ def align(pyramid: list[FrameLevel], model: PointModel, c2w: torch.Tensor, cfg: 
 
 def _exp(xi: torch.Tensor) -> torch.Tensor:
     """``exp`` of a twist ``xi = (ρ, φ) [6]`` (float64) as a 4×4 matrix."""
-    return Se3.exp(xi.double()[None]).matrix()[0]
+    return Se3.exp(xi.double()[None]).matrix()[0].detach()

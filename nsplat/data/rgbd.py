@@ -20,9 +20,13 @@ two surfaces' depths); target pixels whose ray leaves the photo are invalid. ``d
 ``d×d`` blocks (depth: the mean of a block whose valid readings agree within 2 %, else invalid). The returned
 intrinsics follow the library's convention (pixel centres at half-integers, :mod:`nsplat.cameras`).
 
-Depth PNGs hold ``metres × depth_scale`` (5000 for TUM, 1000 for millimetres); 0 (and readings outside
-``[depth_min, depth_max]``) are invalid. Every check that can fail runs before any image is decoded, and
-fails with one line naming the file and what was expected (:class:`~nsplat.errors.DataError`).
+Depth PNGs hold ``metres × depth_scale`` (5000 for TUM, 1000 for millimetres); 0, 65535 (a saturated or invalid
+reading) and readings outside ``[depth_min, depth_max]`` are invalid. A depth camera that is not registered to the
+colour camera (7-Scenes) has its own pinhole intrinsics and a depth → colour transform: its readings are
+reprojected into the colour camera's raw photo first (:func:`reproject_depth`). Every check that can fail runs
+before any image is decoded, and fails with one line naming the file and what was expected
+(:class:`~nsplat.errors.DataError`); the depth scale is checked against the trajectory once the frames are
+decoded, before any fusion (:mod:`nsplat.data.depth_checks`).
 """
 from __future__ import annotations
 
@@ -55,6 +59,8 @@ MIN_FRAMES = 3
 PLAUSIBLE_DEPTH = (0.05, 50.0)
 #: Valid depth readings of a downscaled block must agree within this relative spread.
 BLOCK_AGREE = 0.02
+#: The raw depth value of a saturated or invalid reading (16-bit maximum): invalid whatever ``depth_range``.
+INVALID_DEPTH = 65535
 
 
 @dataclasses.dataclass
@@ -309,16 +315,65 @@ def downscale_depth(depth: torch.Tensor, d: int) -> torch.Tensor:
     return torch.where(ok, blocks.mean(-1), torch.zeros_like(lo))
 
 
+def depth_to_color_matrix(values: Sequence[float]) -> torch.Tensor:
+    """The depth → colour camera transform ``[4,4]`` float64 from 12 or 16 row-major numbers (a rigid motion)."""
+    if len(values) not in (12, 16) or not all(math.isfinite(v) for v in values):
+        raise DataError(f"depth_to_color: expected 12 or 16 finite numbers (a 4×4 row-major matrix), got "
+                        f"{list(values)}")
+    T = torch.eye(4, dtype=torch.float64)
+    T[:len(values) // 4] = torch.tensor(list(values), dtype=torch.float64).reshape(-1, 4)
+    R = T[:3, :3]
+    if (T[3] - torch.tensor([0.0, 0, 0, 1], dtype=torch.float64)).abs().max() > 1e-6 or \
+            (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-3 or float(torch.det(R)) <= 0:
+        raise DataError(f"depth_to_color: expected a rigid transform (a rotation: orthonormal with determinant +1; "
+                        f"last row 0 0 0 1), got {list(values)}")
+    return T
+
+
+def reproject_depth(depth: torch.Tensor, depth_camera: Camera, color_camera: Camera,
+                    depth_to_color: torch.Tensor | None, width: int, height: int) -> torch.Tensor:
+    """A depth camera's map ``depth [h,w]`` (metres, 0 invalid; pinhole ``depth_camera``, OpenCV convention) as
+    the colour camera sees it: ``[height,width]`` float32 metres along the colour camera's axis. Each reading is
+    moved by ``depth_to_color [4,4]`` (depth → colour camera; ``None``: identity), projected with the colour
+    camera's intrinsics and distortion (its raw photo's pixel grid, undistorted afterwards like the photo) to the
+    nearest pixel; the nearest reading wins a pixel (a z-buffer), 0 where none lands."""
+    v, u = torch.nonzero(depth > 0, as_tuple=True)
+    z = depth[v, u].double()
+    d = depth_camera
+    X = torch.stack([(u - d.cx) / d.fx * z, (v - d.cy) / d.fy * z, z], -1)
+    if depth_to_color is not None:
+        T = depth_to_color.double()
+        X = X @ T[:3, :3].T + T[:3, 3]
+    zc = X[:, 2]
+    front = zc > 0
+    x, y = X[:, 0] / zc.clamp_min(1e-9), X[:, 1] / zc.clamp_min(1e-9)
+    k1, k2, p1, p2, k3 = color_camera.distortion
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    uc = torch.round(color_camera.fx * xd + color_camera.cx).long()
+    vc = torch.round(color_camera.fy * yd + color_camera.cy).long()
+    ok = front & (uc >= 0) & (uc < width) & (vc >= 0) & (vc < height)
+    out = torch.full((height * width,), math.inf, dtype=torch.float64)
+    out = out.scatter_reduce(0, vc[ok] * width + uc[ok], zc[ok], "amin")
+    return torch.where(torch.isfinite(out), out, torch.zeros_like(out)).reshape(height, width).float()
+
+
 def load_frames(files: FrameFiles, camera: Camera, *, depth_scale: float, depth_range: tuple[float, float],
-                downscale: int, progress: bool = True) -> RGBDSequence:
-    """Decode, undistort and downscale the frames of ``files`` (one progress bar)."""
+                downscale: int, progress: bool = True, depth_camera: Camera | None = None,
+                depth_to_color: torch.Tensor | None = None) -> RGBDSequence:
+    """Decode, undistort and downscale the frames of ``files`` (one progress bar). With ``depth_camera`` (an
+    unregistered depth camera's pinhole intrinsics) each depth map is first reprojected into the colour camera
+    (:func:`reproject_depth`, ``depth_to_color [4,4]`` the depth → colour transform, identity when ``None``)."""
     first = _read_png(files.color[0], depth=False)
     H, W = first.shape[:2]
     if W % downscale or H % downscale:
         raise DataError(f"downscale: {downscale} does not divide the {W}×{H} frames")
     raw = _read_png(files.depth[0], depth=True)
-    if (raw > 0).any():
-        med = float(np.median(raw[raw > 0])) / depth_scale
+    raw = raw[(raw > 0) & (raw < INVALID_DEPTH)]
+    if raw.size:
+        med = float(np.median(raw)) / depth_scale
         if not PLAUSIBLE_DEPTH[0] <= med <= PLAUSIBLE_DEPTH[1]:
             raise DataError(f"depth_scale: {depth_scale} gives a median depth of {med:.3g} m in {files.depth[0].name}, "
                             f"outside the plausible {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m (5000 for TUM, 1000 "
@@ -330,11 +385,13 @@ def load_frames(files: FrameFiles, camera: Camera, *, depth_scale: float, depth_
                      leave=False):
         rgb = _read_png(c, depth=False)
         dep = _read_png(d, depth=True)
-        if rgb.shape[:2] != (H, W) or dep.shape != (H, W):
+        if rgb.shape[:2] != (H, W) or (depth_camera is None and dep.shape != (H, W)):
             raise DataError(f"{c}: frames must all be {W}×{H} (colour and depth), got colour {rgb.shape[1]}×"
                             f"{rgb.shape[0]} and depth {dep.shape[1]}×{dep.shape[0]} ({d.name})")
         z = torch.from_numpy(dep.astype(np.float32)) / depth_scale
-        z = torch.where((z >= lo) & (z <= hi), z, torch.zeros_like(z))
+        z = torch.where((z >= lo) & (z <= hi) & torch.from_numpy(dep < INVALID_DEPTH), z, torch.zeros_like(z))
+        if depth_camera is not None:
+            z = reproject_depth(z, depth_camera, camera, depth_to_color, W, H)
         im = warp.colour(torch.from_numpy(rgb).float() / 255.0)
         if downscale > 1:
             im = F.avg_pool2d(im.permute(2, 0, 1)[None], downscale)[0].permute(1, 2, 0)

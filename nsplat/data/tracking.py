@@ -14,10 +14,11 @@ exposure-compensated intensity); it doubles its voxel when it holds more than ``
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
-from typing import Literal
+from typing import Iterator, Literal
 
 import torch
 from tqdm import tqdm
@@ -41,6 +42,9 @@ class TrackingConfig:
         stride: pixel stride of a keyframe's points entering the model.
         max_points: the model's point cap (its voxel doubles past it).
         rounds: global re-alignment rounds after tracking (:func:`realign`).
+        threads: torch threads while tracking (restored after; 0: leave as set). The registration's tensors are
+            small (thousands of points): one thread is as fast, and more oversubscribe a busy machine (measured 40×
+            slower with 2 threads while another job shared the 2 cores).
         predict: each frame's start without a given trajectory: ``velocity`` (the last motion repeated) or
             ``last`` (the last pose).
     """
@@ -52,11 +56,12 @@ class TrackingConfig:
     stride: int = 2
     max_points: int = 400_000
     rounds: int = 2
+    threads: int = 1
     predict: Literal["velocity", "last"] = "velocity"
 
     def __post_init__(self) -> None:
         require_fields(self, keyframe_trans=">=0", keyframe_rot_deg=">=0", voxel=">0", stride=">=1",
-                       max_points=">=1000", rounds=">=0")
+                       max_points=">=1000", rounds=">=0", threads=">=0")
         require(self.predict in ("velocity", "last"), "predict", "'velocity' or 'last'", self.predict)
 
 
@@ -141,6 +146,24 @@ def track(depths: torch.Tensor, images: torch.Tensor, Ks: torch.Tensor, cfg: Tra
         masks: ``[B,H,W]`` usable pixels (default: all).
     """
     cfg = cfg or TrackingConfig()
+    with _threads(cfg.threads):
+        return _track(depths, images, Ks, cfg, init, progress, masks)
+
+
+@contextlib.contextmanager
+def _threads(n: int) -> Iterator[None]:
+    """Within the block torch uses ``n`` threads (0: unchanged)."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _track(depths: torch.Tensor, images: torch.Tensor, Ks: torch.Tensor, cfg: TrackingConfig,
+           init: torch.Tensor | None, progress: bool, masks: torch.Tensor | None) -> Trajectory:
     B = depths.shape[0]
     a_cfg = cfg.align
     c2w = torch.zeros(B, 4, 4, dtype=torch.float64)

@@ -178,22 +178,25 @@ def sequence_state(model: Refiner, data: RefineData, cfg: Config, seed: int, *, 
         renders["heldout"] = render_all(held, seed, cfg.optim.batch)
         out["heldout"] = frame_metrics(renders["heldout"], data.heldout)
     renders["c2w"] = trajectory(model, held, seq)
-    out.update(trajectory_metrics(renders["c2w"], seq))
+    out.update(trajectory_metrics(renders["c2w"], seq, cfg.data.rgbd.trajectory_alignment))
     out["points"] = model.scene.num_points
     return out, renders
 
 
 def _initial(model: Refiner, data: RefineData, cfg: Config, ctx: RunContext, seed: int) -> dict[str, Any]:
-    """The "before" figures (written to ``metrics_initial.json``)."""
+    """The "before" figures (written to ``metrics_initial.json``): with ``heldout.fit_before`` the held-out frames
+    scored after the same camera + exposure fit as "after" gets (``heldout``, and the renders the before/after
+    sheets show; at the trajectory's poses: ``heldout_unfitted``); ATE / RPE of the trajectory as given."""
     if data.sequence is None:
         init, img0 = evaluate_state(model, seed, cfg.optim.batch)
         torch.save(img0.cpu(), ctx.run_dir / "renders_initial.pt")
         return init
     init, renders = sequence_state(model, data, cfg, seed, fit=False)
     if cfg.heldout.fit_before and data.heldout is not None:
-        fitted, _ = sequence_state(model, data, cfg, seed, fit=True)
-        init["heldout_fitted"] = fitted["heldout"]
-        init["heldout_fitted"].update({k: fitted[k] for k in fitted if k.startswith(("ate", "rpe"))})
+        held = fit_heldout(model, data.heldout, cfg, seed, data.sequence)
+        renders["heldout"] = render_all(held, seed, cfg.optim.batch)
+        init["heldout_unfitted"] = init["heldout"]
+        init["heldout"] = frame_metrics(renders["heldout"], data.heldout)
     torch.save({k: v.cpu() for k, v in renders.items()}, ctx.run_dir / "renders_initial.pt")
     write_tum(ctx.run_dir / "trajectory_initial.txt", data.sequence.c2w, data.sequence,
               f"initial trajectory ({data.sequence.source.get('trajectory', '')})")
@@ -243,7 +246,16 @@ def run(cfg: Config, ctx: RunContext) -> dict[str, Any]:
     model = t.modules["model"]
     eval_seed = op_seed(ctx.seed, "eval")
     if start == 0:
-        init = _initial(model, data, cfg, ctx, eval_seed)
+        if data.initial is not None:  # the trajectory as given, before the re-tracking
+            given = build(cfg, data.initial.scene, data.initial.frames).modules["model"]
+            init = _initial(given, data.initial, cfg, ctx, eval_seed)
+            init["start"] = trajectory_metrics(data.sequence.c2w, data.sequence, cfg.data.rgbd.trajectory_alignment)
+            init["source"] = data.sequence.source
+            write_tum(ctx.run_dir / "trajectory_retracked.txt", data.sequence.c2w, data.sequence,
+                      "the given trajectory re-tracked (nsplat.data.tracking)")
+            del given
+        else:
+            init = _initial(model, data, cfg, ctx, eval_seed)
         write_json(ctx.run_dir / "metrics_initial.json", init)
         log.info("initial: %s", {k: v for k, v in init.items() if not isinstance(v, dict)})
         t.extra = {"initial": init, "seconds": 0.0, "removed": 0}

@@ -54,13 +54,24 @@ class RGBDSource:
         trajectory: the trajectory to refine (TUM layout; relative to ``root`` unless absolute); ``estimate``:
             track the frames (:mod:`nsplat.data.tracking`; every frame, as a SLAM system would);
             ``auto``: ``odometry.txt`` when the folder has one, else ``estimate``.
-        groundtruth: a ground-truth trajectory for ATE / RPE ("" : none).
-        intrinsics_file: the folder layout's 3×3 intrinsics file ("" : ``intrinsics`` or ``camera``).
-        camera: a TUM camera preset (``fr1``, ``fr2``, ``fr3``) used when ``intrinsics`` is empty.
+        groundtruth: a ground-truth trajectory for ATE / RPE ("" : none). A trajectory equal to it (every pose
+            within 1e-6, up to the world frame) is warned about: its ATE measures nothing.
+        trajectory_alignment: how ATE aligns the trajectory to the ground truth: ``se3`` (rigid, RGB-D) or
+            ``sim3`` (with a scale, e.g. a monocular trajectory); RPE needs none.
+        intrinsics_file: the folder layout's 3×3 intrinsics file ("" : ``intrinsics``; the folder layout has no
+            preset, one of the two is required).
+        camera: a TUM camera preset (``fr1``, ``fr2``, ``fr3``) used by the TUM layout when ``intrinsics`` is empty.
         intrinsics: ``[fx, fy, cx, cy]`` in OpenCV's pixel convention (overrides the preset).
         distortion: OpenCV ``[k1, k2, p1, p2, k3]`` with ``intrinsics`` (empty: none).
-        depth_scale: depth PNG units per metre (5000 TUM, 1000 millimetres).
-        depth_range: ``[min, max]`` valid depth in metres.
+        depth_intrinsics: the depth camera's own ``[fx, fy, cx, cy]`` (OpenCV convention, no distortion) when its
+            images are not registered to the colour camera (7-Scenes); empty: the depth is registered.
+        depth_to_color: with ``depth_intrinsics``, the depth camera → colour camera rigid transform (4×4 row-major
+            or its first 12 numbers, metres; empty: identity). The depth is reprojected into the colour camera
+            (the nearest reading wins a pixel) before undistortion and downscaling.
+        depth_scale: depth PNG units per metre (5000 TUM, 1000 millimetres). A scale that makes the depth
+            disagree with the given trajectory's motion is an error (:mod:`nsplat.data.depth_checks`).
+        depth_range: ``[min, max]`` valid depth in metres (the raw value 65535, a saturated or invalid reading,
+            is invalid whatever the range).
         max_dt: largest time difference (s) when pairing RGB, depth and poses.
         downscale: integer image downscale (2: 640×480 → 320×240).
         stride: use every ``stride``-th frame. limit: at most this many frames (0: all).
@@ -70,17 +81,24 @@ class RGBDSource:
         cloud: a PLY of the SLAM system's surfels (``x y z``; ``nx ny nz``, ``red green blue`` and ``radius``
             when present) instead of fusing the depth.
         fusion: :class:`nsplat.data.fusion.FusionConfig`.
-        tracking: :class:`nsplat.data.tracking.TrackingConfig` (with ``trajectory: estimate``).
+        tracking: :class:`nsplat.data.tracking.TrackingConfig` (with ``trajectory: estimate`` or ``retrack``).
+        retrack: with a given trajectory, re-track the frames before refining (each frame predicted by the
+            trajectory's own relative motion, registered to the model of the frames before it, then
+            ``tracking.rounds`` re-alignments): a wide basin for a trajectory far off. "Before" still scores the
+            trajectory as given.
     """
 
     root: str = ""
     layout: Literal["tum", "folder"] = "tum"
     trajectory: str = "auto"
     groundtruth: str = "groundtruth.txt"
+    trajectory_alignment: Literal["se3", "sim3"] = "se3"
     intrinsics_file: str = ""
     camera: str = "fr1"
     intrinsics: list[float] = dataclasses.field(default_factory=list)
     distortion: list[float] = dataclasses.field(default_factory=list)
+    depth_intrinsics: list[float] = dataclasses.field(default_factory=list)
+    depth_to_color: list[float] = dataclasses.field(default_factory=list)
     depth_scale: float = 5000.0
     depth_range: list[float] = dataclasses.field(default_factory=lambda: [0.1, 5.0])
     max_dt: float = 0.02
@@ -92,6 +110,7 @@ class RGBDSource:
     cloud: str = ""
     fusion: FusionConfig = dataclasses.field(default_factory=FusionConfig)
     tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
+    retrack: bool = False
 
     def __post_init__(self) -> None:
         require_fields(self, depth_scale=">0", max_dt=">0", downscale=">=1", stride=">=1", limit=">=0",
@@ -105,6 +124,18 @@ class RGBDSource:
                 "distortion", "[] or [k1, k2, p1, p2, k3]", self.distortion)
         require(self.holdout_every != 1, "holdout_every", "0 (none) or >= 2 (1 would hold out every frame)",
                 self.holdout_every)
+        require(self.layout != "folder" or bool(self.intrinsics_file or self.intrinsics), "intrinsics_file",
+                "the folder layout's intrinsics: a 3×3 matrix file (data.rgbd.intrinsics_file, e.g. "
+                "camera-intrinsics.txt) or data.rgbd.intrinsics [fx, fy, cx, cy] (the camera presets are TUM's)",
+                self.intrinsics_file)
+        require(not self.depth_intrinsics or (len(self.depth_intrinsics) == 4 and all(
+            math.isfinite(v) for v in self.depth_intrinsics) and min(self.depth_intrinsics[:2]) > 0),
+                "depth_intrinsics", "[] (registered depth) or [fx, fy, cx, cy] with fx, fy > 0",
+                self.depth_intrinsics)
+        require(not self.depth_to_color or (self.depth_intrinsics and len(self.depth_to_color) in (12, 16)
+                                            and all(math.isfinite(v) for v in self.depth_to_color)),
+                "depth_to_color", "[] or 12 / 16 numbers (a 4×4 row-major rigid transform) with depth_intrinsics",
+                self.depth_to_color)
 
 
 @dataclasses.dataclass
@@ -210,14 +241,15 @@ class HeldoutConfig:
 
     Attributes:
         steps: Adam steps of the fit (0: score at the trajectory's poses).
-        fit_before: also fit them to the initial scene and report it (``heldout_fitted`` of the "before"
-            figures): what the fit alone gives, without the refinement.
+        fit_before: fit them the same way to the initial scene for the "before" figures (the fair protocol:
+            both sides scored after the same fit; the figures at the trajectory's poses are kept as
+            ``heldout_unfitted``); false: "before" scores them at the trajectory's poses.
         lr_pose: rate of the pose twists. lr_exposure: rate of the exposures (when learned).
         decay_every: halve the rates every this many steps (0: constant).
     """
 
     steps: int = 100
-    fit_before: bool = False
+    fit_before: bool = True
     lr_pose: float = 0.002
     lr_exposure: float = 0.005
     decay_every: int = 40

@@ -18,11 +18,12 @@ import torch
 
 from nsplat.cameras import perturb_viewmats
 from nsplat.config import ConfigError
+from nsplat.data.depth_checks import check_depth_scale, same_trajectory
 from nsplat.data.fusion import fuse
 from nsplat.data.nerf_synthetic import load_split
 from nsplat.data.paths import resolve, resolve_data
 from nsplat.data.pointclouds import read_point_ply, read_vertex_element
-from nsplat.data.rgbd import RGBDSequence, camera_of, folder_files, load_frames, tum_files
+from nsplat.data.rgbd import RGBDSequence, camera_of, depth_to_color_matrix, folder_files, load_frames, tum_files
 from nsplat.data.tracking import TrackingConfig, track
 from nsplat.data.views import PosedViews
 from nsplat.errors import DataError
@@ -54,12 +55,15 @@ class Sequence:
 @dataclasses.dataclass
 class RefineData:
     """What :func:`load_data` returns: training ``frames``, the initial ``scene``, and for an RGB-D source the
-    ``heldout`` frames and the ``sequence`` (else ``None``)."""
+    ``heldout`` frames and the ``sequence`` (else ``None``); with ``data.rgbd.retrack`` the refinement starts
+    from the re-tracked trajectory and ``initial`` holds the same along the trajectory as given (what "before"
+    scores)."""
 
     frames: PosedViews
     scene: SurfelScene
     heldout: PosedViews | None = None
     sequence: Sequence | None = None
+    initial: "RefineData | None" = None
 
 
 def split(count: int, every: int) -> tuple[list[int], list[int]]:
@@ -95,12 +99,14 @@ def _slam_cloud(path: Path, cfg: Config) -> SurfelScene:
                                    opacities=cfg.data.init_opacity, features=colours)
 
 
-def estimated(seq: RGBDSequence, cfg: TrackingConfig, progress: bool) -> tuple[RGBDSequence, dict[str, Any]]:
+def estimated(seq: RGBDSequence, cfg: TrackingConfig, progress: bool, init: torch.Tensor | None = None
+              ) -> tuple[RGBDSequence, dict[str, Any]]:
     """``seq`` with the trajectory tracked from its frames (:func:`nsplat.data.tracking.track`: every frame, as
-    a SLAM system tracks them; the held-out split applies to the refinement) and the tracker's figures
-    (``tracker``, ``keyframes``, ``lost``, ``wall_s``, ``cpu_s``, ``fps``). The ground truth is not read."""
+    a SLAM system tracks them; the held-out split applies to the refinement), each frame predicted by ``init``'s
+    relative motion when given (re-tracking a trajectory), and the tracker's figures (``tracker``,
+    ``keyframes``, ``lost``, ``wall_s``, ``cpu_s``, ``fps``). The ground truth is not read."""
     clock = (time.perf_counter(), time.process_time())
-    out = track(seq.depths, seq.images, seq.Ks, cfg, progress=progress, masks=seq.valid)
+    out = track(seq.depths, seq.images, seq.Ks, cfg, init=init, progress=progress, masks=seq.valid)
     wall, cpu = time.perf_counter() - clock[0], time.process_time() - clock[1]
     log.info("tracking: %d frames in %.1f s (%.1f frames/s), %d keyframes, %d lost", len(seq), wall,
              len(seq) / wall, len(out.keyframes), len(out.lost))
@@ -127,12 +133,35 @@ def load_rgbd(src: RGBDSource, cfg: Config, progress: bool = True) -> RefineData
     camera = files.camera if files.camera is not None and not src.intrinsics else \
         camera_of(src.camera, src.intrinsics, src.distortion)
     scene = _slam_cloud(resolve(src.cloud), cfg) if src.cloud else None  # checked before any frame is decoded
+    depth_camera = camera_of(src.camera, src.depth_intrinsics, []) if src.depth_intrinsics else None
+    to_color = depth_to_color_matrix(src.depth_to_color) if src.depth_to_color else None
     seq = load_frames(files, camera, depth_scale=src.depth_scale, depth_range=tuple(src.depth_range),
-                      downscale=src.downscale, progress=progress)
-    train, held = split(len(seq), src.holdout_every)
+                      downscale=src.downscale, progress=progress, depth_camera=depth_camera, depth_to_color=to_color)
     source: dict[str, Any] = {"trajectory": name if src.layout == "tum" else "pose files"}
+    if not estimate:  # a trajectory estimated from the depth agrees with its scale whatever it is
+        check_depth_scale(seq.depths, seq.Ks, seq.c2w, src.depth_scale)
+        if seq.c2w_gt is not None and same_trajectory(seq.c2w, seq.c2w_gt):
+            log.warning("data.rgbd.trajectory: %s is the ground truth itself (every pose within 1e-6 of %s): "
+                        "ATE and RPE measure nothing", source["trajectory"], src.groundtruth)
+    split_ = split(len(seq), src.holdout_every)
     if estimate:
         seq, source = estimated(seq, src.tracking, progress)
+        return _refine_data(seq, split_, src, cfg, scene, source, progress)
+    if not src.retrack:
+        return _refine_data(seq, split_, src, cfg, scene, source, progress)
+    given = _refine_data(seq, split_, src, cfg, None if scene is None else _slam_cloud(resolve(src.cloud), cfg),
+                         source, progress)
+    seq, tracked = estimated(seq, src.tracking, progress, init=seq.c2w)
+    out = _refine_data(seq, split_, src, cfg, scene, {**source, "retracked": tracked}, progress)
+    out.initial = given
+    return out
+
+
+def _refine_data(seq: RGBDSequence, split_: tuple[list[int], list[int]], src: RGBDSource, cfg: Config,
+                 scene: SurfelScene | None, source: dict[str, Any], progress: bool) -> RefineData:
+    """The training and held-out frames of ``seq`` along its trajectory, its timeline, and ``scene`` (``None``:
+    fused from the training frames' depth)."""
+    train, held = split_
     tr = seq.subset(train)
     if scene is None:
         s = fuse(tr.depths, tr.images, tr.Ks, tr.c2w, src.fusion, progress=progress)
@@ -156,7 +185,9 @@ def load_data(cfg: Config, device: torch.device, progress: bool = True) -> Refin
                                         opacities=torch.full((n,), d.init_opacity), features=room.colours)
     elif d.source == "rgbd":
         out = load_rgbd(d.rgbd, cfg, progress)
-        frames, scene, heldout, sequence = out.frames, out.scene, out.heldout, out.sequence
+        if out.initial is not None:
+            out.initial = _on(out.initial, device)
+        return dataclasses.replace(_on(out, device), initial=out.initial)
     else:
         nf = d.nerf
         views = load_split(resolve_data(nf.root, "nerf_synthetic/lego_400"), nf.split, resolution=nf.resolution,
@@ -170,4 +201,10 @@ def load_data(cfg: Config, device: torch.device, progress: bool = True) -> Refin
         init = perturb_viewmats(views.viewmats, nf.rot_deg, nf.trans_frac * extent, generator=g)
         masks = torch.ones(views.images.shape[:3], dtype=torch.bool)
         frames = dataclasses.replace(views, masks=masks, viewmats=init.float(), viewmats_gt=views.viewmats)
-    return RefineData(frames.to(device), scene.to(device), None if heldout is None else heldout.to(device), sequence)
+    return _on(RefineData(frames, scene, heldout, sequence), device)
+
+
+def _on(data: RefineData, device: torch.device) -> RefineData:
+    """``data``'s frames and scene on ``device`` (``initial`` left as it is)."""
+    return RefineData(data.frames.to(device), data.scene.to(device),
+                      None if data.heldout is None else data.heldout.to(device), data.sequence, data.initial)

@@ -202,3 +202,42 @@ def _inv_se3(T: torch.Tensor) -> torch.Tensor:
     out[..., :3, 3] = -(Rt @ T[..., :3, 3:]).squeeze(-1)
     out[..., 3, 3] = 1.0
     return out
+
+
+def inject_drift(c2w: torch.Tensor, seed: int, ate_rmse: float, deg_per_m: float = 40.0) -> torch.Tensor:
+    """A smoothly drifting copy of ``c2w [F,4,4]`` whose ATE RMSE against it (after the SE(3) alignment) is
+    ``ate_rmse`` metres, as odometry drifts: every relative motion is followed by a small error twist whose
+    direction turns slowly along the sequence (a seeded blend of two random translation directions and two rotation
+    axes), its rotation ``deg_per_m`` degrees per metre of its translation; the errors accumulate, so the drift
+    grows along the sequence. The size is found by bisection on the twist's scale. Returns float64 ``[F,4,4]``
+    with the first pose unchanged.
+    """
+    from kornia.geometry.liegroup import Se3  # noqa: PLC0415 - kept local: the metrics need no kornia
+
+    if ate_rmse <= 0:
+        raise ValueError(f"ate_rmse: expected > 0 metres, got {ate_rmse}")
+    P = c2w.double()
+    F = P.shape[0]
+    g = torch.Generator().manual_seed(seed)
+    dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=g, dtype=torch.float64), dim=-1)
+    s = torch.linspace(0, 1, F, dtype=torch.float64)[:, None]
+    trans = torch.nn.functional.normalize((1 - s) * dirs[0] + s * dirs[1], dim=-1)
+    axis = torch.nn.functional.normalize((1 - s) * dirs[2] + s * dirs[3], dim=-1)
+    rel = _inv_se3(P[:-1]) @ P[1:]
+
+    def drift(scale: float) -> torch.Tensor:
+        step = scale / max(F - 1, 1)
+        twist = torch.cat([trans * step, axis * math.radians(deg_per_m) * step], -1)
+        E = Se3.exp(twist).matrix().detach()
+        out = [P[0]]
+        for i in range(F - 1):
+            out.append(out[-1] @ rel[i] @ E[i + 1])
+        return torch.stack(out)
+
+    lo, hi = 0.0, 1.0
+    while ate(drift(hi), P)["rmse"] < ate_rmse:
+        hi *= 2.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if ate(drift(mid), P)["rmse"] < ate_rmse else (lo, mid)
+    return drift(0.5 * (lo + hi))
