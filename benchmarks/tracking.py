@@ -1,6 +1,6 @@
 """The RGB-D tracker (:mod:`nsplat.data.tracking`) on the shared TUM sequences, against Open3D's frame-to-frame
 hybrid RGB-D odometry (``compute_rgbd_odometry`` with ``RGBDOdometryJacobianFromHybridTerm``, default options:
-the "well-kept library" row) on the same frames, when ``open3d`` imports.
+the "well-kept library" row) on the same frames, when ``open3d`` imports (``pip install -e '.[rgbd]'``).
 
 Each sequence is read as the refine task reads it (``nsplat.data.rgbd``: undistorted, ``--downscale`` 2 gives
 320×240, the Freiburg-1 preset), every frame tracked from the frames alone; the ground truth only scores: ATE RMSE
